@@ -1,0 +1,3 @@
+from kneemesh.cli import app
+
+app()

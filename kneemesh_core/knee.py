@@ -1,0 +1,205 @@
+"""A knee's label map in the canonical convention, with its side and geometry.
+
+:func:`load_knee` is the single entry point from a label map file (any preset)
+to canonical labels 1..7 (:data:`kneemesh_core.tissues.TISSUES`) on the same
+voxel grid, with spacing, origin and direction unchanged.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+from scipy import ndimage as ndi
+
+from kneemesh_core import side as side_mod
+from kneemesh_core.errors import KneeMeshError
+from kneemesh_core.io import Volume, read_label_map, voxel_to_lps, voxel_volume_ml
+from kneemesh_core.tissues import (
+    LABEL,
+    MERGED_TIBIAL,
+    TISSUES,
+    LabelConvention,
+    check_convention,
+    detect_convention,
+    label_counts,
+    resolve_convention,
+)
+
+
+@dataclass
+class Knee:
+    """Canonical labels of one knee.
+
+    Attributes
+    ----------
+    labels : SimpleITK.Image
+        uint8, values 0..7 (:data:`LABEL`), the input's grid and geometry.
+    convention : LabelConvention
+        The convention of the input file.
+    side : str
+        ``"left"`` or ``"right"``.
+    side_method : str
+        How the side was decided (``explicit``, ``dicom``, ``file_name``,
+        ``labels_medial_lateral``, ``anatomy+scanner_position``, ...).
+    side_evidence : dict
+    source : str
+    meta : dict
+        Header facts from the input file.
+    """
+
+    labels: sitk.Image
+    convention: LabelConvention
+    side: str
+    side_method: str
+    side_evidence: dict = field(default_factory=dict)
+    source: str = ""
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def array(self) -> np.ndarray:
+        """(K, J, I) uint8 view in numpy (z, y, x) order."""
+        return sitk.GetArrayViewFromImage(self.labels)
+
+    def volumes_ml(self) -> dict[str, float]:
+        """Label volume of each canonical tissue, ml."""
+        counts = np.bincount(self.array.ravel(), minlength=len(TISSUES) + 1)
+        vml = voxel_volume_ml(self.labels)
+        return {t: float(counts[LABEL[t]] * vml) for t in TISSUES}
+
+    def present(self) -> list[str]:
+        return [t for t, v in self.volumes_ml().items() if v > 0]
+
+
+def _lps_points(image: sitk.Image, mask: np.ndarray) -> np.ndarray:
+    """LPS mm of the voxels of a (z, y, x) boolean mask, (N, 3)."""
+    return voxel_to_lps(image, np.argwhere(mask)[:, ::-1])
+
+
+def _centroid_x(image: sitk.Image, mask: np.ndarray) -> float:
+    idx = np.argwhere(mask)[:, ::-1].mean(0, keepdims=True)
+    return float(voxel_to_lps(image, idx)[0, 0])
+
+
+def canonicalise(
+    vol: Volume,
+    convention: LabelConvention | None = None,
+    side: str | None = None,
+) -> Knee:
+    """Map a label map of any convention to canonical labels, deciding the side.
+
+    Parameters
+    ----------
+    vol : Volume
+        A label map read by :func:`kneemesh_core.io.read_label_map`.
+    convention : LabelConvention or None
+        ``None`` to auto-detect (error if ambiguous).
+    side : ``"left"``, ``"right"`` or None to detect.
+    """
+    image = vol.image
+    arr = sitk.GetArrayViewFromImage(image)
+    counts = label_counts(arr)
+    if convention is None:
+        convention = detect_convention(counts, voxel_volume_ml(image))
+    check_convention(convention, counts, vol.source)
+
+    lut = np.zeros(256, dtype=np.uint8)
+    for tissue, vals in convention.tissues.items():
+        if tissue != MERGED_TIBIAL:
+            lut[list(vals)] = LABEL[tissue]
+    canon = lut[arr]
+    if not canon.any() and not convention.merged_tibial:
+        raise KneeMeshError("empty_labels", f"{Path(vol.source).name}: no tissue of the {convention.name!r} convention.")
+
+    knee_mask = canon > 0
+    knee_x = _centroid_x(image, knee_mask) if knee_mask.any() else None
+    labelled_ml = None
+    mtc, ltc = canon == LABEL["medial_tibial_cartilage"], canon == LABEL["lateral_tibial_cartilage"]
+    if mtc.any() and ltc.any():
+        labelled_ml = (_centroid_x(image, mtc), _centroid_x(image, ltc))
+    fib_vals = convention.value_of("fibula")
+    fibula = np.isin(arr, fib_vals) if fib_vals else None
+    fibula_x = _centroid_x(image, fibula) if fibula is not None and fibula.any() else None
+
+    plates = None
+    merged = None
+    if convention.merged_tibial:
+        merged = np.isin(arr, convention.tissues[MERGED_TIBIAL])
+        if merged.sum() >= 40:
+            comp, _ = ndi.label(merged)
+            pts = _lps_points(image, merged)
+            plates = side_mod.split_plates(pts, comp[merged])
+            if knee_x is None:
+                knee_x = float(pts[:, 0].mean())
+
+    decision = side_mod.decide(
+        explicit=side,
+        dicom_meta=vol.meta,
+        filename=Path(vol.source).name,
+        labelled_ml=labelled_ml,
+        fibula_x=fibula_x,
+        knee_x=knee_x,
+        plates=plates,
+    )
+    if merged is not None and merged.any():
+        if plates is None:  # a few voxels: give them all to the nearer plate by position
+            plus = np.ones(int(merged.sum()), dtype=bool)
+        else:
+            plus = plates.plus_x
+        medial_is_plus = side_mod.medial_sign(decision.side) > 0
+        values = np.where(plus == medial_is_plus, LABEL["medial_tibial_cartilage"], LABEL["lateral_tibial_cartilage"])
+        canon[merged] = values.astype(np.uint8)
+
+    out = sitk.GetImageFromArray(canon)
+    out.CopyInformation(image)
+    return Knee(
+        labels=out,
+        convention=convention,
+        side=decision.side,
+        side_method=decision.method,
+        side_evidence=decision.evidence,
+        source=vol.source,
+        meta=vol.meta,
+    )
+
+
+def load_knee(
+    path: str | os.PathLike,
+    *,
+    preset: str | None = None,
+    labels: str | None = None,
+    side: str | None = None,
+) -> Knee:
+    """Read a label map file and return its canonical :class:`Knee`.
+
+    Parameters
+    ----------
+    path : label map (NIfTI, NRRD, MHA, DICOM).
+    preset : a name from :data:`kneemesh_core.tissues.PRESETS`, or None to detect.
+    labels : custom mapping ``femur=5,tibia=6,...`` or a JSON file; overrides ``preset``.
+    side : ``left``/``right`` or None to detect.
+    """
+    vol = read_label_map(path)
+    return canonicalise(vol, resolve_convention(preset, labels), side)
+
+
+def describe(knee: Knee) -> dict:
+    """The facts ``kneemesh inspect --json`` prints."""
+    img = knee.labels
+    d = np.asarray(img.GetDirection()).reshape(3, 3)
+    return {
+        "source": knee.source,
+        "shape": list(img.GetSize()),
+        "spacing_mm": [round(s, 6) for s in img.GetSpacing()],
+        "origin_mm": [round(o, 4) for o in img.GetOrigin()],
+        "orientation": sitk.DICOMOrientImageFilter.GetOrientationFromDirectionCosines(img.GetDirection()),
+        "direction": [round(v, 6) for v in d.ravel()],
+        "preset": knee.convention.name,
+        "side": knee.side,
+        "side_method": knee.side_method,
+        "side_evidence": knee.side_evidence,
+        "tissues": {t: round(v, 3) for t, v in knee.volumes_ml().items()},
+    }
