@@ -8,8 +8,11 @@ float32 rounding of a NIfTI qform/sform.
 
 from __future__ import annotations
 
+import gzip
 import os
+import struct
 import tempfile
+import zlib
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,10 +131,48 @@ def _read_file(p: Path) -> tuple[sitk.Image, dict]:
         raise KneeMeshError(
             "corrupt", f"{p.name}: the header was read but the voxel data is truncated or corrupt."
         ) from exc
+    if _suffix(p) in (".nii", ".nii.gz"):
+        _check_nifti_complete(p)
     meta: dict = {}
     if dicom.looks_like_dicom(p):
         meta = dicom.meta_from_reader(reader)
     return image, meta
+
+
+def _check_nifti_complete(p: Path) -> None:
+    """Raise ``corrupt`` if a NIfTI file holds fewer voxel bytes than its header promises.
+
+    ITK's NIfTI reader pads a truncated file silently, so the byte count is
+    checked here from the header (NIfTI-1 and NIfTI-2, either endianness).
+    """
+    opener = gzip.open if p.name.lower().endswith(".gz") else open
+    try:
+        with opener(p, "rb") as fh:
+            head = fh.read(540)
+            for endian in "<>":
+                size = struct.unpack(endian + "i", head[:4])[0]
+                if size in (348, 540):
+                    break
+            else:
+                return
+            if size == 348:
+                dims = struct.unpack(endian + "8h", head[40:56])
+                bitpix = struct.unpack(endian + "h", head[72:74])[0]
+                offset = int(struct.unpack(endian + "f", head[108:112])[0])
+            else:
+                bitpix = struct.unpack(endian + "h", head[14:16])[0]
+                dims = struct.unpack(endian + "8q", head[16:80])
+                offset = struct.unpack(endian + "q", head[168:176])[0]
+            need = offset + int(np.prod([max(d, 1) for d in dims[1 : 1 + max(dims[0], 1)]])) * bitpix // 8
+            have = len(head)
+            while chunk := fh.read(1 << 22):
+                have += len(chunk)
+    except (OSError, EOFError, struct.error, zlib.error) as exc:
+        raise KneeMeshError("corrupt", f"{p.name}: the NIfTI file is truncated or corrupt ({exc}).") from exc
+    if have < need:
+        raise KneeMeshError(
+            "corrupt", f"{p.name}: the NIfTI file is truncated ({have:,} of {need:,} bytes); re-export or re-copy it."
+        )
 
 
 def _check_geometry(image: sitk.Image, name: str, max_voxels: int) -> None:

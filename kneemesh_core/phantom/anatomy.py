@@ -43,7 +43,7 @@ class KneeParams:
             lateral_delta=rng.uniform(0.3, 0.8),
             fc_mm=rng.uniform(2.0, 2.6),
             tc_mm=rng.uniform(2.0, 2.6),
-            pc_mm=rng.uniform(2.5, 3.1),
+            pc_mm=rng.uniform(2.3, 2.9),
             gap_mm=rng.uniform(0.0, 0.3),
             flexion_deg=rng.uniform(0.0, 30.0),
             varus_deg=rng.uniform(-3.0, 3.0),

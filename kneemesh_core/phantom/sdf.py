@@ -11,9 +11,15 @@ import numpy as np
 
 
 def ellipsoid(u, v, w, c, r):
-    """Approximate SDF of an ellipsoid centred at ``c`` with radii ``r`` (mm)."""
-    k0 = np.sqrt(((u - c[0]) / r[0]) ** 2 + ((v - c[1]) / r[1]) ** 2 + ((w - c[2]) / r[2]) ** 2)
-    return (k0 - 1.0) * min(r)
+    """SDF of an ellipsoid centred at ``c`` with radii ``r`` (mm), first-order accurate near the surface.
+
+    The gradient-normalised bound ``k0 (k0 - 1) / k1`` (k0 = |p/r|, k1 = |p/r^2|):
+    the plain ``(k0 - 1) min(r)`` would thicken shells on the long axes by r_max/r_min.
+    """
+    du, dv, dw = (u - c[0]), (v - c[1]), (w - c[2])
+    k0 = np.sqrt((du / r[0]) ** 2 + (dv / r[1]) ** 2 + (dw / r[2]) ** 2)
+    k1 = np.sqrt((du / r[0] ** 2) ** 2 + (dv / r[1] ** 2) ** 2 + (dw / r[2] ** 2) ** 2)
+    return k0 * (k0 - 1.0) / np.maximum(k1, 1e-6)
 
 
 def capsule_w(u, v, w, c, r, w0, w1):

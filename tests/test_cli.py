@@ -1,0 +1,55 @@
+"""The command line: inspect, phantom, one-line errors with nothing half-written."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from conftest import OAI, PYMSKT_LEFT, SAMPLE, real
+
+KNEEMESH = [sys.executable, "-m", "kneemesh"]
+
+
+def run(*args):
+    return subprocess.run([*KNEEMESH, *map(str, args)], capture_output=True, text=True, timeout=300)
+
+
+def test_version_and_help():
+    r = run("--version")
+    assert r.returncode == 0 and r.stdout.startswith("kneemesh ")
+    assert "inspect" in run("--help").stdout
+
+
+def test_inspect_json_real_left_and_sample():
+    info = json.loads(run("inspect", real(PYMSKT_LEFT), "--json").stdout)
+    assert info["preset"] == "pymskt" and info["side"] == "left"
+    assert {"shape", "spacing_mm", "preset", "side", "side_method", "tissues"} <= set(info)
+    assert 1.5 < info["tissues"]["lateral_tibial_cartilage"] < 4
+    r = run("inspect", SAMPLE)
+    assert r.returncode == 0 and "right" in r.stdout and "femoral_cartilage" in r.stdout
+
+
+def test_inspect_oai_map():
+    info = json.loads(run("inspect", real(OAI / "OAI_ZIB-UQ_9011115.nii.gz"), "--json").stdout)
+    assert info["preset"] == "oai-zib" and info["side"] == "right"
+    assert info["side_method"] == "anatomy+scanner_position"
+
+
+def test_bad_input_one_line_no_traceback(tmp_path):
+    bad = tmp_path / "scan.nii.gz"
+    bad.write_bytes(b"\x1f\x8b garbage")
+    r = run("inspect", bad)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert "error (not_an_image)" in r.stderr
+    r = run("inspect", SAMPLE, "--preset", "nope")
+    assert r.returncode == 2 and "unknown_preset" in r.stderr
+
+
+def test_phantom_command_writes_image_and_labels(tmp_path):
+    r = run("phantom", tmp_path / "ph", "--seed", "3", "--side", "left", "--severity", "2")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "ph" / "image.nii.gz").exists() and (tmp_path / "ph" / "labels.nii.gz").exists()
+    info = json.loads(run("inspect", tmp_path / "ph" / "labels.nii.gz", "--json").stdout)
+    assert info["preset"] == "kneemesh" and info["side"] == "left"
