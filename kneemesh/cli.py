@@ -90,5 +90,55 @@ def phantom(
         out.print(str(p))
 
 
+@app.command()
+def mesh(
+    labels_file: Path = typer.Argument(..., metavar="LABELS", help="Label map (NIfTI, NRRD, MHA, DICOM)."),
+    out_dir: Path = typer.Option(..., "--out", help="Output folder: meshes/, surfaces/, report.json."),
+    preset: Optional[str] = PresetOpt,
+    labels: Optional[str] = LabelsOpt,
+    side: Optional[str] = SideOpt,
+    only: str = typer.Option("all", "--only", help="all, bones or cartilage."),
+    stl: bool = typer.Option(False, "--stl", help="Also write .stl files."),
+    bone_edge: float = typer.Option(3.0, "--bone-edge", help="Target bone triangle edge, mm."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Processes meshing tissues in parallel."),
+):
+    """Mesh a knee: FE-ready bone shells and tissue surfaces, with report.json."""
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from kneemesh_core.pipeline import JobOptions, run
+    from kneemesh_core.surfaces.tissue import SurfaceOptions
+
+    opts = JobOptions(preset=preset, labels=labels, side=side, only=only, stl=stl,
+                      surface=SurfaceOptions(bone_edge_mm=bone_edge))
+    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=err,
+                  transient=not err.is_terminal) as bar:
+        tasks: dict[str, int] = {}
+
+        def progress(stage: str, state: str) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(f"{stage}: {state}", total=1)
+            bar.update(tasks[stage], description=f"{stage}: {state}",
+                       completed=1 if state in ("done", "ok", "failed") else 0)
+
+        with _clear_errors():
+            report = run(labels_file, out_dir, opts, workers=workers, progress=progress)
+    t = Table(title=f"{out_dir} ({report['input']['side']} knee, {report['input']['preset']} labels)")
+    for col in ("tissue", "status", "s", "cells", "volume ml", "label ml", "dist mean/p95 mm", "note"):
+        t.add_column(col)
+    for tissue, e in report["tissues"].items():
+        if e["status"] != "ok":
+            t.add_row(tissue, "[red]failed[/]", f"{e['seconds']:.1f}", "", "", "", "", e["reason"])
+            continue
+        d = e.get("surface_distance_mm")
+        closed = e.get("watertight")
+        note = ("closed, manifold" if closed and e.get("manifold") else "") if closed is not None else f"{e['open_edges']} open edges"
+        t.add_row(tissue, "ok", f"{e['seconds']:.1f}", str(e["n_cells"]), f"{e['volume_ml']:.2f}",
+                  f"{e['label_volume_ml']:.2f}", f"{d['mean']:.2f}/{d['p95']:.2f}" if d else "", note)
+    out.print(t)
+    out.print(f"report: {Path(out_dir) / 'report.json'}")
+    if report["summary"]["failed"]:
+        raise typer.Exit(1)
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

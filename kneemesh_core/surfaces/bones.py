@@ -1,0 +1,53 @@
+"""FE-ready rigid bone shells: closed, manifold, uniform triangles (ACVD)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyacvd
+import pymeshfix
+import pyvista as pv
+
+from kneemesh_core.errors import KneeMeshError
+from kneemesh_core.surfaces.isosurface import orient_outward
+
+#: Area per vertex of an ideal triangulation with edge e: two equilateral triangles per vertex.
+_AREA_PER_VERTEX = np.sqrt(3) / 2
+
+
+def _meshfix(surf: pv.PolyData) -> pv.PolyData:
+    """MeshFix repair (Attene 2010): removes self-intersections, degeneracies, fills holes."""
+    faces = surf.faces.reshape(-1, 4)[:, 1:]
+    mf = pymeshfix.MeshFix(np.asarray(surf.points, float), faces)
+    mf.repair(joincomp=False, remove_smallest_components=True)
+    return pv.PolyData.from_regular_faces(mf.points, mf.faces)
+
+
+def bone_mesh(surface: pv.PolyData, edge_mm: float = 3.0) -> pv.PolyData:
+    """Uniform, closed, manifold bone shell from a reconstructed bone surface.
+
+    Voronoi clustering (ACVD, Valette et al. 2008) of the smoothed isosurface
+    to about ``edge_mm`` mean edge length (this replaces the paper's 80%
+    decimation for bones: clustering is the stronger reduction), then MeshFix
+    repair (Attene 2010: clustering can pinch a thin region into a
+    non-manifold edge or a self-intersection), normals outward.
+
+    Parameters
+    ----------
+    surface : closed triangle surface in LPS mm.
+    edge_mm : target mean edge length, mm.
+    """
+    if edge_mm <= 0.2 or edge_mm > 20:
+        raise KneeMeshError("bad_option", f"bone edge length {edge_mm} mm is outside 0.2-20 mm.")
+    n_clusters = int(surface.area / (_AREA_PER_VERTEX * edge_mm**2))
+    if n_clusters < 50:
+        raise KneeMeshError("bone_too_small", f"bone surface of {surface.area:.0f} mm^2 is too small for {edge_mm} mm elements.")
+    clus = pyacvd.Clustering(surface)
+    while clus.mesh.n_points < 8 * n_clusters:
+        clus.subdivide(2)
+    clus.cluster(n_clusters)
+    # Cluster centroids are not ray-projected back onto the surface (pyacvd's
+    # ``moveclus``): that step costs seconds per bone, and the centroid of a
+    # 3 mm patch lies within ~0.06 mm (e^2 / 8R for R ~ 20 mm) of it.
+    clustered = clus.create_mesh(moveclus=False)
+    shell = _meshfix(clustered)
+    return orient_outward(shell)

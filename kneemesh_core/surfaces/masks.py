@@ -1,0 +1,80 @@
+"""Binary tissue masks ready for surface extraction: closed, one component, cropped."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import SimpleITK as sitk
+from scipy import ndimage as ndi
+
+from kneemesh_core.errors import KneeMeshError
+
+
+@dataclass
+class CleanMask:
+    """A tissue mask cropped to its bounding box (plus a margin).
+
+    Attributes
+    ----------
+    mask : (K, J, I) bool, numpy (z, y, x) order of the crop.
+    offset_ijk : (3,) int, ITK index of the crop's first voxel in the full image.
+    image : SimpleITK.Image of the full label map (geometry only is used).
+    label_ml : volume of the tissue's label before cleaning, ml.
+    discarded_ml : volume of the components dropped as artefacts, ml.
+    n_components : connected components in the closed mask.
+    """
+
+    mask: np.ndarray
+    offset_ijk: np.ndarray
+    image: sitk.Image
+    label_ml: float
+    discarded_ml: float
+    n_components: int
+
+
+def clean_mask(labels: sitk.Image, value: int, closing_voxels: int, name: str = "tissue") -> CleanMask:
+    """Close a tissue's mask and keep its largest connected component.
+
+    Parameters
+    ----------
+    labels : uint8 label image (canonical values).
+    value : the tissue's label value.
+    closing_voxels : side of the cubic closing kernel in voxels (the paper: 3
+        for bone, 5 for cartilage; 0 or 1 for none).
+    """
+    arr = sitk.GetArrayViewFromImage(labels)
+    where = np.nonzero(arr == value)
+    if where[0].size == 0:
+        raise KneeMeshError("tissue_missing", f"{name}: the label map has no {name} voxels.")
+    voxel_ml = float(np.prod(labels.GetSpacing())) / 1000.0
+    radius = max(closing_voxels // 2, 0)
+    margin = radius + 2
+    lo = [max(int(w.min()) - margin, 0) for w in where]
+    hi = [min(int(w.max()) + margin + 1, n) for n, w in zip(arr.shape, where)]
+    crop = (arr[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] == value).astype(np.uint8)
+    # Closing by a cube is a max filter then a min filter, both separable: scipy's
+    # rank filters run 5-10x faster here than SimpleITK's BinaryMorphologicalClosing.
+    # The crop margin keeps the filters off the image border, so a bone cut by the
+    # field of view stays open there and is capped by the isosurface step.
+    closed = crop
+    if radius:
+        closed = ndi.minimum_filter(ndi.maximum_filter(np.pad(crop, margin), 2 * radius + 1), 2 * radius + 1)
+        closed = closed[margin:-margin, margin:-margin, margin:-margin]
+    comp, n = ndi.label(closed)
+    if n > 1:
+        sizes = np.bincount(comp.ravel())
+        sizes[0] = 0
+        keep = comp == int(np.argmax(sizes))
+    else:
+        keep = closed.astype(bool)
+    # what the closing added is not "discarded"; count original voxels outside the kept component
+    discarded = int(np.count_nonzero(crop.astype(bool) & ~keep))
+    return CleanMask(
+        mask=keep,
+        offset_ijk=np.array(lo[::-1]),
+        image=labels,
+        label_ml=where[0].size * voxel_ml,
+        discarded_ml=discarded * voxel_ml,
+        n_components=n,
+    )

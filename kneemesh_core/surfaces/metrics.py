@@ -1,0 +1,59 @@
+"""Surface checks for FE: closedness, manifoldness, self-intersections, edge lengths, accuracy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pymeshfix
+import pyvista as pv
+import vtk
+from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+
+
+def edges_mm(surf: pv.PolyData) -> np.ndarray:
+    """Lengths of the unique edges of a triangle surface, mm."""
+    f = surf.faces.reshape(-1, 4)[:, 1:]
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    e = np.unique(e, axis=0)
+    return np.linalg.norm(surf.points[e[:, 0]] - surf.points[e[:, 1]], axis=1)
+
+
+def topology(surf: pv.PolyData) -> dict:
+    """``watertight`` (every edge in exactly two triangles, consistently wound), ``manifold``
+    (no edge in three or more triangles), ``self_intersections`` (triangle count)."""
+    f = surf.faces.reshape(-1, 4)[:, 1:]
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    und = np.sort(directed, axis=1)
+    _, counts = np.unique(und, axis=0, return_counts=True)
+    manifold = bool(np.all(counts <= 2))
+    # consistent winding: each directed edge appears once
+    _, dcounts = np.unique(directed, axis=0, return_counts=True)
+    watertight = bool(manifold and np.all(counts == 2) and np.all(dcounts == 1))
+    tm = pymeshfix.PyTMesh()
+    tm.set_quiet(True)
+    tm.load_array(np.asarray(surf.points, float), f.astype(np.int32))
+    n_int = len(tm.select_intersecting_triangles())
+    return {"watertight": watertight, "manifold": manifold, "self_intersections": n_int}
+
+
+def distance_to_surface(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
+    """Unsigned distance (mm) of each point (N, 3) to the nearest point of ``surface``."""
+    f = vtk.vtkImplicitPolyDataDistance()
+    f.SetInput(surface)
+    out = vtk.vtkDoubleArray()
+    f.FunctionValue(numpy_to_vtk(np.ascontiguousarray(points, dtype=float), deep=True), out)
+    return np.abs(vtk_to_numpy(out))
+
+
+def surface_distance(mesh: pv.PolyData, reference: pv.PolyData, max_points: int = 30000, seed: int = 0) -> dict:
+    """Symmetric surface distance between a mesh and a reference surface, mm.
+
+    Distances from mesh vertices to the reference and from (up to
+    ``max_points``) reference vertices to the mesh, pooled: mean, 95th
+    percentile and maximum.
+    """
+    rng = np.random.default_rng(seed)
+    ref_pts = reference.points
+    if len(ref_pts) > max_points:
+        ref_pts = ref_pts[rng.choice(len(ref_pts), max_points, replace=False)]
+    d = np.concatenate([distance_to_surface(mesh.points, reference), distance_to_surface(ref_pts, mesh)])
+    return {"mean": float(d.mean()), "p95": float(np.percentile(d, 95)), "max": float(d.max())}
