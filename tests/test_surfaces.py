@@ -1,0 +1,111 @@
+"""Bone shells and tissue surfaces on real knees and phantoms: accuracy, closedness, physical space."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from conftest import OAI, PYMSKT_LEFT, SAMPLE, mirror_lr, real
+from kneemesh_core.io import voxel_to_lps, write_image
+from kneemesh_core.knee import load_knee
+from kneemesh_core.pipeline import JobOptions, run
+from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct
+from kneemesh_core.tissues import BONES, LABEL
+
+
+def check_bone(mesh, facts, labels: sitk.Image, tissue: str):
+    """The issue's accuracy and validity targets for one bone shell."""
+    assert facts["watertight"] and facts["manifold"], facts
+    assert facts["self_intersections"] == 0
+    assert abs(facts["volume_ml"] - facts["label_volume_ml"]) <= 0.03 * facts["label_volume_ml"], facts
+    assert facts["surface_distance_mm"]["mean"] <= 0.3 and facts["surface_distance_mm"]["p95"] <= 0.8, facts
+    assert 2.6 <= facts["edge_mm"]["mean"] <= 3.4
+    assert mesh.volume > 0  # outward normals: positive enclosed volume
+    # physical space: the shell's bounds are those of the label voxels (LPS mm)
+    idx = np.argwhere(sitk.GetArrayViewFromImage(labels) == LABEL[tissue])[:, ::-1]
+    pts = voxel_to_lps(labels, idx)
+    np.testing.assert_allclose(np.asarray(mesh.bounds).reshape(3, 2)[:, 0], pts.min(0), atol=1.5)
+    np.testing.assert_allclose(np.asarray(mesh.bounds).reshape(3, 2)[:, 1], pts.max(0), atol=1.5)
+
+
+@pytest.mark.parametrize("path", [SAMPLE, PYMSKT_LEFT, OAI / "OAI_AKOA_9055361_00m.nii.gz"],
+                         ids=["right_pymskt", "left_isotropic", "oai_with_lesions"])
+def test_real_bones_meet_targets(path):
+    knee = load_knee(real(path))
+    for bone in BONES:
+        mesh, facts = reconstruct(knee.labels, bone, SurfaceOptions())
+        check_bone(mesh, facts, knee.labels, bone)
+
+
+@pytest.mark.parametrize("severity", [0, 3])
+def test_phantom_bones_meet_targets(phantoms, severity):
+    _, labels = phantoms("left", severity)
+    for bone in BONES:
+        mesh, facts = reconstruct(labels, bone, SurfaceOptions())
+        check_bone(mesh, facts, labels, bone)
+
+
+def test_mirrored_left_handed_grid_still_gives_outward_normals():
+    knee = load_knee(real(SAMPLE))
+    flipped = sitk.GetImageFromArray(sitk.GetArrayFromImage(knee.labels))
+    d = np.asarray(knee.labels.GetDirection()).reshape(3, 3)
+    flipped.SetSpacing(knee.labels.GetSpacing())
+    flipped.SetOrigin(tuple(np.diag([-1, 1, 1]) @ np.asarray(knee.labels.GetOrigin())))
+    flipped.SetDirection(tuple((np.diag([-1.0, 1, 1]) @ d).ravel()))  # determinant -1
+    mesh, facts = reconstruct(flipped, "patella", SurfaceOptions())
+    assert mesh.volume > 0 and facts["watertight"]
+    assert abs(facts["volume_ml"] - facts["label_volume_ml"]) < 0.03 * facts["label_volume_ml"]
+
+
+def test_cartilage_keeps_full_thickness_holes(phantoms):
+    _, labels = phantoms("left", 3)  # severity 3 has full-thickness defects and a denuded area
+    mesh, facts = reconstruct(labels, "medial_tibial_cartilage", SurfaceOptions())
+    kept = facts["label_volume_ml"] - facts["discarded_ml"]  # defects split off fragments
+    assert facts["volume_ml"] == pytest.approx(kept, rel=0.1)
+    # a cartilage plate with a hole through it has genus >= 1: Euler characteristic <= 0
+    euler = mesh.n_points - mesh.extract_all_edges().n_cells + mesh.n_cells
+    healthy, _ = reconstruct(phantoms("left", 0)[1], "medial_tibial_cartilage", SurfaceOptions())
+    euler_h = healthy.n_points - healthy.extract_all_edges().n_cells + healthy.n_cells
+    assert euler < euler_h
+
+
+def test_job_writes_meshes_and_report_and_isolates_failures(tmp_path):
+    # cartilage-only (imorphics) labels: the bones fail with a clear reason, cartilage still meshes
+    knee = load_knee(real(SAMPLE))
+    lut = np.zeros(256, np.uint8)
+    lut[[LABEL["femoral_cartilage"], LABEL["lateral_tibial_cartilage"], LABEL["medial_tibial_cartilage"],
+         LABEL["patellar_cartilage"]]] = [1, 2, 3, 4]
+    im = sitk.GetImageFromArray(lut[knee.array])
+    im.CopyInformation(knee.labels)
+    path = write_image(im, tmp_path / "imorphics.nrrd")
+    report = run(path, tmp_path / "out", JobOptions(preset="imorphics", only="all"), workers=2)
+    for bone in BONES:
+        assert report["tissues"][bone]["status"] == "failed"
+        assert "no femur" in report["tissues"]["femur"]["reason"]
+    assert report["tissues"]["patellar_cartilage"]["status"] == "ok"
+    assert (tmp_path / "out" / "surfaces" / "patellar_cartilage.vtp").exists()
+    on_disk = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert on_disk["summary"]["failed"] == ["femur", "patella", "tibia"]
+    for key in ("status", "reason", "seconds"):
+        assert key in on_disk["tissues"]["femur"]
+
+
+def test_cli_mesh_bones_only_with_stl(tmp_path):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "kneemesh", "mesh", str(real(SAMPLE)), "--out", str(tmp_path),
+                        "--only", "bones", "--stl"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert set(report["tissues"]) == set(BONES)
+    for bone in BONES:
+        e = report["tissues"][bone]
+        for key in ("status", "seconds", "n_points", "n_cells", "volume_ml", "label_volume_ml", "watertight",
+                    "manifold", "self_intersections", "edge_mm", "surface_distance_mm"):
+            assert key in e, key
+        assert (tmp_path / "meshes" / f"{bone}.vtp").exists() and (tmp_path / "meshes" / f"{bone}.stl").exists()
+    assert report["input"]["side"] == "right"
