@@ -6,6 +6,8 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= demo-output
+# One text encoding whatever the locale (CI runs with an ASCII one).
+export PYTHONUTF8 = 1
 
 .PHONY: demo test bench clean venv
 

@@ -12,7 +12,7 @@ KNEEMESH = [sys.executable, "-m", "kneemesh"]
 
 
 def run(*args):
-    return subprocess.run([*KNEEMESH, *map(str, args)], capture_output=True, text=True, timeout=300)
+    return subprocess.run([*KNEEMESH, *map(str, args)], capture_output=True, text=True, encoding="utf-8", timeout=300)
 
 
 def test_version_and_help():

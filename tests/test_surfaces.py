@@ -106,7 +106,7 @@ def test_cli_mesh_bones_only_with_stl(tmp_path):
     import sys
 
     r = subprocess.run([sys.executable, "-m", "kneemesh", "mesh", str(real(SAMPLE)), "--out", str(tmp_path),
-                        "--only", "bones", "--stl"], capture_output=True, text=True, timeout=300)
+                        "--only", "bones", "--stl"], capture_output=True, text=True, encoding="utf-8", timeout=300)
     assert r.returncode == 0, r.stderr
     report = json.loads((tmp_path / "report.json").read_text())
     assert set(report["tissues"]) == set(BONES)

@@ -33,7 +33,8 @@ class CleanMask:
     n_components: int
 
 
-def clean_mask(labels: sitk.Image, value: int, closing_voxels: int, name: str = "tissue") -> CleanMask:
+def clean_mask(labels: sitk.Image, value: int, closing_voxels: int, name: str = "tissue",
+               min_component_ml: float | None = None) -> CleanMask:
     """Close a tissue's mask and keep its largest connected component.
 
     Parameters
@@ -42,6 +43,9 @@ def clean_mask(labels: sitk.Image, value: int, closing_voxels: int, name: str = 
     value : the tissue's label value.
     closing_voxels : side of the cubic closing kernel in voxels (the paper: 3
         for bone, 5 for cartilage; 0 or 1 for none).
+    min_component_ml : None keeps the largest component only (the paper); a
+        volume keeps every component at least that big (OA cartilage split by
+        a denuded band is still cartilage).
     """
     arr = sitk.GetArrayViewFromImage(labels)
     where = np.nonzero(arr == value)
@@ -65,7 +69,12 @@ def clean_mask(labels: sitk.Image, value: int, closing_voxels: int, name: str = 
     if n > 1:
         sizes = np.bincount(comp.ravel())
         sizes[0] = 0
-        keep = comp == int(np.argmax(sizes))
+        if min_component_ml is None:
+            keep = comp == int(np.argmax(sizes))
+        else:
+            big = sizes * voxel_ml >= min_component_ml
+            big[int(np.argmax(sizes))] = True
+            keep = big[comp]
     else:
         keep = closed.astype(bool)
     # what the closing added is not "discarded"; count original voxels outside the kept component
