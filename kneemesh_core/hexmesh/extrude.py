@@ -1,0 +1,128 @@
+"""Sweep the quad mesh through the cartilage: bone-side nodes, columns along the normal, layers between.
+
+1. Each quad-mesh node goes onto the bone-side surface along its domain ray.
+2. Its column leaves the bone side along the (smoothed) normal of the
+   bone-side quad surface and ends where it leaves the cartilage (an Embree
+   ray): columns stand perpendicular to the bone, so a plate inclined to the
+   projection direction is not sheared.  Where that ray misses (the rim), the
+   domain ray's articular height is used.
+3. At the rim the column keeps a minimum height, ``layers x longest adjacent
+   edge / 5.5``, so no element's edge ratio exceeds 5.5 (the reconstructed rim
+   tapers to nothing), and the thickness of the two outer rings is smoothed so
+   the articular surface does not drop over a single element.
+4. ``layers`` element layers are interpolated linearly along each column.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from kneemesh_core.hexmesh.footprint import Footprint
+from kneemesh_core.hexmesh.optimize import choose_tops
+from kneemesh_core.hexmesh.quadmesh import QuadMesh
+from kneemesh_core.hexmesh.rays import crossings
+
+#: Largest edge ratio the rim columns are built for.
+EDGE_RATIO_TARGET = 5.5
+
+
+@dataclass
+class HexMesh:
+    """Hexahedra in LPS mm, node order that of VTK and Abaqus C3D8 (bottom face, then top face).
+
+    Attributes
+    ----------
+    points : (P * (L + 1), 3) node coordinates, layer by layer from the bone side.
+    hexes : (Q * L, 8) node indices.
+    layer : (Q * L,) 0 at the bone, L - 1 at the joint.
+    ring : (Q * L,) perimeter ring of the element's column (0 = outermost).
+    node_layer : (P * (L + 1),) 0 = bone side, L = articular.
+    node_edge : (P * (L + 1),) bool, nodes on the cartilage edge (the footprint contour).
+    """
+
+    points: np.ndarray
+    hexes: np.ndarray
+    layer: np.ndarray
+    ring: np.ndarray
+    node_layer: np.ndarray
+    node_edge: np.ndarray
+
+
+def _edges(quads: np.ndarray) -> np.ndarray:
+    e = np.concatenate([quads[:, [0, 1]], quads[:, [1, 2]], quads[:, [2, 3]], quads[:, [3, 0]]])
+    return np.unique(np.sort(e, 1), axis=0)
+
+
+def _node_mean(values: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:
+    """Mean of each node's neighbours' values over the edge graph."""
+    acc = np.zeros((n,) + values.shape[1:])
+    np.add.at(acc, edges[:, 0], values[edges[:, 1]])
+    np.add.at(acc, edges[:, 1], values[edges[:, 0]])
+    deg = np.bincount(edges.ravel(), minlength=n).reshape((n,) + (1,) * (values.ndim - 1))
+    return acc / np.maximum(deg, 1)
+
+
+def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm) -> HexMesh:
+    """Hex mesh of the cartilage over the quad mesh ``qm``; ``tm`` is the surface's ray intersector."""
+    n = len(qm.points)
+    quads = qm.quads
+    bone = domain.position(qm.points, fp.sample(fp.bone, qm.points))
+    ray_top = domain.position(qm.points, fp.sample(fp.joint, qm.points))
+    edges = _edges(quads)
+
+    # bone-side normals (quads are counter-clockwise seen from the joint: normals point to the joint)
+    p = bone[quads]
+    qn = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+    normal = np.zeros((n, 3))
+    np.add.at(normal, quads.ravel(), np.repeat(qn, 4, axis=0))
+    for _ in range(3):
+        normal = 0.5 * normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+        normal = normal + _node_mean(normal, edges, n)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+
+    fallback = np.linalg.norm(ray_top - bone, axis=1)
+    ray_dir = (ray_top - bone) / np.maximum(fallback, 1e-12)[:, None]
+
+    # rim: a minimum column height for the edge ratio, and smoothing of the outer rings
+    node_ring = np.full(n, np.iinfo(np.int64).max)
+    np.minimum.at(node_ring, quads.ravel(), np.repeat(qm.ring, 4))
+    node_ring[qm.contour] = -1
+    quad_longest = np.linalg.norm(bone[quads] - bone[np.roll(quads, -1, axis=1)], axis=2).max(1)
+    longest = np.zeros(n)
+    np.maximum.at(longest, quads.ravel(), np.repeat(quad_longest, 4))
+    floor = layers * longest / EDGE_RATIO_TARGET
+    rim = node_ring <= 1
+
+    def column(direction: np.ndarray) -> np.ndarray:
+        """Articular nodes along unit directions (P, 3) from the bone side."""
+        eps = 0.05
+        _, leave = crossings(tm, bone - eps * direction, direction)
+        along = leave - eps
+        ok = np.isfinite(along) & (along > 0.5 * fallback) & (along < 2.0 * fallback + 0.5)
+        thick = np.where(ok, along, fallback)
+        for _ in range(3):
+            thick = np.maximum(thick, floor)
+            thick = np.where(rim, 0.5 * thick + 0.5 * _node_mean(thick, edges, n), thick)
+        return bone + direction * np.maximum(thick, floor)[:, None]
+
+    candidates = []
+    for w in (1.0, 0.75, 0.5, 0.25, 0.0):
+        d = w * normal + (1 - w) * ray_dir
+        candidates.append(column(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)))
+    top = choose_tops(bone, np.stack(candidates), quads)
+
+    frac = (np.arange(layers + 1) / layers)[:, None, None]
+    points = (bone[None] + (top - bone)[None] * frac).reshape(-1, 3)
+    offsets = (np.arange(layers) * n)[:, None, None]
+    hexes = np.concatenate([quads[None] + offsets, quads[None] + offsets + n], axis=2).reshape(-1, 8)
+    q = len(quads)
+    return HexMesh(
+        points=points,
+        hexes=hexes,
+        layer=np.repeat(np.arange(layers), q),
+        ring=np.tile(qm.ring, layers),
+        node_layer=np.repeat(np.arange(layers + 1), n),
+        node_edge=np.tile(qm.contour, layers + 1),
+    )

@@ -1,0 +1,45 @@
+"""How faithfully a hex mesh represents its cartilage: volume, coverage, articular surface deviation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyvista as pv
+
+from kneemesh_core.hexmesh.extrude import HexMesh
+from kneemesh_core.hexmesh.quality import to_grid
+from kneemesh_core.surfaces.metrics import distance_to_surface
+
+#: A reconstructed surface patch counts as covered within this distance of the mesh, mm.
+COVERAGE_TOL_MM = 0.5
+
+
+def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float) -> dict:
+    """Volume against the label, area coverage of the reconstructed surface, articular deviation.
+
+    Parameters
+    ----------
+    surface : the reconstructed cartilage surface the mesh was built from.
+    label_ml : cartilage label volume, ml.
+    """
+    grid = to_grid(hm.points, hm.hexes)
+    volume_ml = float(grid.volume) / 1000.0
+    outer = grid.extract_surface().triangulate()
+    cells = surface.compute_cell_sizes(length=False, volume=False)
+    area = np.asarray(cells.cell_data["Area"])
+    d = distance_to_surface(surface.cell_centers().points, outer)
+    coverage = float(area[d <= COVERAGE_TOL_MM].sum() / area.sum())
+    top = hm.node_layer == hm.node_layer.max()
+    dev = distance_to_surface(hm.points[top], surface)
+    return {
+        "volume_ml": round(volume_ml, 4),
+        "label_volume_ml": round(label_ml, 4),
+        "volume_error": round((volume_ml - label_ml) / label_ml, 4),
+        "coverage": round(coverage, 4),
+        "surface_deviation_mm": {"median": round(float(np.median(dev)), 4), "p95": round(float(np.percentile(dev, 95)), 4),
+                                 "max": round(float(dev.max()), 4)},
+    }
+
+
+def passes_fidelity(f: dict) -> bool:
+    return (abs(f["volume_error"]) <= 0.05 and f["coverage"] >= 0.97 and f["surface_deviation_mm"]["median"] <= 0.15
+            and f["surface_deviation_mm"]["p95"] <= 0.5)

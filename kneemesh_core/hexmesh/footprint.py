@@ -1,0 +1,91 @@
+"""The cartilage footprint in the parameter plane: a cleaned mask, its signed distance, filled heights."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage as ndi
+from skimage.morphology import remove_small_holes, remove_small_objects
+
+from kneemesh_core.hexmesh.rays import HeightField
+
+
+@dataclass
+class Footprint:
+    """Where the cartilage is, seen along the rays.
+
+    Attributes
+    ----------
+    grid : the :class:`HeightField` grid it lives on.
+    inside : (ns, nt) bool.
+    sdf : (ns, nt) signed distance to the footprint contour, mm (negative inside).
+    bone, joint : (ns, nt) surface heights, mm, extended outside the footprint by
+        their nearest inside value so that contour nodes can be placed.
+    """
+
+    grid: HeightField
+    inside: np.ndarray
+    sdf: np.ndarray
+    bone: np.ndarray
+    joint: np.ndarray
+    edge_thickness: float  # thickness at the contour, mm
+
+    def sample(self, field: np.ndarray, st: np.ndarray) -> np.ndarray:
+        """Bilinear sample of a grid field at parameter points (N, 2)."""
+        idx = self.grid.index(st).T
+        return ndi.map_coordinates(field, idx, order=1, mode="nearest")
+
+    def gradient(self, st: np.ndarray) -> np.ndarray:
+        """(N, 2) gradient of the signed distance at parameter points."""
+        g = np.gradient(self.sdf, self.grid.step)
+        return np.stack([self.sample(g[0], st), self.sample(g[1], st)], -1)
+
+    def area_mm2(self) -> float:
+        return float(self.inside.sum() * self.grid.step**2)
+
+
+def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction: float = 0.35,
+                   max_slope_deg: float = 55.0, s_scale: np.ndarray | float = 1.0, min_area: float = 4.0,
+                   min_hole: float = 1.0, smooth_mm: float = 1.0) -> Footprint:
+    """Footprint of a height field.
+
+    Rays thinner than ``min_thickness`` mm, or than ``edge_fraction`` of the
+    median thickness, do not count: the rounded rim of a reconstructed
+    cartilage tapers to nothing, and columns that thin make flat, sheared
+    elements; the mesh edge is a short wall instead (blending slopes it later).
+    Where the rim rolls over (articular surface steeper than ``max_slope_deg``
+    to the rays), the footprint is trimmed from the outside in: a column
+    there would be sheared beyond a scaled Jacobian of cos(max slope).
+    ``s_scale`` converts an s-step into mm along the surface (cylinder: R0 / r).
+    Islands smaller than
+    ``min_area`` mm^2 are dropped; holes smaller than ``min_hole`` mm^2 (ray
+    noise, not anatomy) are filled, larger ones (full-thickness defects) stay.
+    The contour is smoothed with a Gaussian of ``smooth_mm``.
+    """
+    step = hf.step
+    px = step * step
+    thick = np.where(hf.hit, hf.joint - hf.bone, 0.0)
+    if (thick > min_thickness).any():
+        min_thickness = max(min_thickness, edge_fraction * float(np.median(thick[thick > min_thickness])))
+    mask = hf.hit & (thick > min_thickness)
+    valid = hf.hit & (thick > 0)
+    _, (ii, jj) = ndi.distance_transform_edt(~valid, return_indices=True)
+    joint_filled = hf.joint[ii, jj]
+    gs, gt = np.gradient(joint_filled, step)
+    slope = np.hypot(gs * s_scale, gt)
+    steep = slope > np.tan(np.deg2rad(max_slope_deg))
+    rim = ndi.binary_propagation(~mask, mask=~mask | steep)
+    mask &= ~rim
+    mask = remove_small_objects(mask, max_size=max(int(min_area / px), 1))
+    mask = remove_small_holes(mask, max_size=max(int(min_hole / px), 1))
+    if smooth_mm > 0:
+        mask = ndi.gaussian_filter(mask.astype(np.float32), smooth_mm / step) > 0.5
+    inside_d = ndi.distance_transform_edt(mask) * step
+    outside_d = ndi.distance_transform_edt(~mask) * step
+    sdf = np.where(mask, -(inside_d - 0.5 * step), outside_d - 0.5 * step)
+    sdf = ndi.gaussian_filter(sdf, 1.0)
+    # heights outside the hits: those of the nearest ray that hit
+    bone = hf.bone[ii, jj]
+    joint = joint_filled
+    return Footprint(hf, mask, sdf.astype(float), bone, joint, min_thickness)

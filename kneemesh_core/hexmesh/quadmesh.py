@@ -1,0 +1,358 @@
+"""All-quad mesh of the footprint: a regular lattice inside, one pillowed ring on the contour.
+
+1. Lattice cells whose four corners lie at least ``inset * h`` inside the
+   footprint are kept (a staircase region).
+2. The staircase is made a clean 2-manifold: one-cell spikes, diagonal-only
+   (pinch) contacts and tiny islands are removed, so every boundary vertex has
+   exactly one boundary edge in and one out.
+3. Every staircase boundary vertex gets a partner on the smoothed contour
+   (Newton steps on the signed distance, then tangential smoothing along the
+   loop so partners never fold), and every boundary edge a->b becomes the quad
+   (b, a, a', b'): the pillow ring.  No staircase, no collapsed quads, and
+   holes (full-thickness defects) get their own ring facing inwards.
+4. Coordinate ascent on the worst quad around each node smooths the
+   transition (contour nodes slide along the contour).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage as ndi
+from skimage.measure import find_contours
+
+from kneemesh_core.hexmesh.footprint import Footprint
+
+
+@dataclass
+class QuadMesh:
+    """Quads in the parameter plane.
+
+    Attributes
+    ----------
+    points : (P, 2) parameter coordinates, mm.
+    quads : (Q, 4) node indices, counter-clockwise in (s, t).
+    contour : (P,) bool, nodes on the footprint contour.
+    ring : (Q,) int, 0 for the pillow ring, 1 for the quads next to it, ...
+    """
+
+    points: np.ndarray
+    quads: np.ndarray
+    contour: np.ndarray
+    ring: np.ndarray
+
+
+def quad_quality(points: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """Scaled Jacobian of 2-D quads (Q,): min over corners of sin(corner angle), negative if inverted."""
+    return _quality_of(points[quads])
+
+
+def _clean_cells(cells: np.ndarray, min_cells: int = 4) -> np.ndarray:
+    """Remove one-cell spikes, pinch (diagonal-only) contacts and islands until none is left."""
+    cells = cells.copy()
+    four = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]])
+    for _ in range(200):
+        changed = False
+        nb = ndi.convolve(cells.astype(np.int8), four, mode="constant")
+        spikes = cells & (nb <= 1)
+        if spikes.any():
+            cells[spikes] = False
+            changed = True
+        # 2x2 windows around each interior lattice vertex: a=(i-1,j-1) b=(i,j-1) c=(i,j) d=(i-1,j)
+        a, b, c, d = cells[:-1, :-1], cells[1:, :-1], cells[1:, 1:], cells[:-1, 1:]
+        nb = ndi.convolve(cells.astype(np.int8), four, mode="constant")
+        for pattern, p_off, q_off in (((a & c & ~b & ~d), (0, 0), (1, 1)), ((b & d & ~a & ~c), (1, 0), (0, 1))):
+            for i, j in np.argwhere(pattern):
+                p, q = (i + p_off[0], j + p_off[1]), (i + q_off[0], j + q_off[1])
+                if cells[p] and cells[q]:  # keep the better connected of the two diagonal cells
+                    cells[p if nb[p] <= nb[q] else q] = False
+                    changed = True
+        lab, n = ndi.label(cells, structure=four)
+        if n:
+            sizes = np.bincount(lab.ravel())
+            small = (sizes < min_cells) & (np.arange(n + 1) > 0)
+            if small.any():
+                cells[small[lab]] = False
+                changed = True
+        if not changed:
+            return cells
+    return cells
+
+
+def _root_along(fp: Footprint, p: np.ndarray, d: np.ndarray, reach: float, back: bool = False,
+                iterations: int = 20) -> np.ndarray:
+    """Signed step t along directions d (N, 2) from points p (N, 2) to the contour, by bisection.
+
+    Searches t in [0, reach] (or [-reach, reach] with ``back``); where the
+    contour is not bracketed the step is the nearest end of the range.
+    """
+    lo = np.full(len(p), -reach if back else 0.0)
+    hi = np.full(len(p), reach)
+    f_lo = fp.sample(fp.sdf, p + d * lo[:, None])
+    f_hi = fp.sample(fp.sdf, p + d * hi[:, None])
+    bracketed = (f_lo <= 0) & (f_hi >= 0)
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        f = fp.sample(fp.sdf, p + d * mid[:, None])
+        inside = f < 0
+        lo = np.where(inside, mid, lo)
+        hi = np.where(inside, hi, mid)
+    t = 0.5 * (lo + hi)
+    return np.where(bracketed, t, np.where(f_hi < 0, reach, -reach if back else 0.0))
+
+
+def quad_mesh(fp: Footprint, h: float, *, inset: float = 0.5) -> QuadMesh:
+    """Quad mesh of a footprint with element size ``h`` (mm); see the module notes."""
+    grid = fp.grid
+    ns, nt = fp.inside.shape
+    ni = int((ns - 1) * grid.step // h) + 1
+    nj = int((nt - 1) * grid.step // h) + 1
+    lattice = np.stack(np.meshgrid(grid.s0 + h * np.arange(ni), grid.t0 + h * np.arange(nj), indexing="ij"), -1)
+    node_sdf = fp.sample(fp.sdf, lattice.reshape(-1, 2)).reshape(ni, nj)
+    deep = node_sdf <= -inset * h
+    cells = deep[:-1, :-1] & deep[1:, :-1] & deep[1:, 1:] & deep[:-1, 1:]
+    cells = _clean_cells(cells)
+    if not cells.any():
+        raise ValueError("the footprint holds no complete element")
+
+    ci, cj = np.nonzero(cells)
+    corners = np.stack([ci * nj + cj, (ci + 1) * nj + cj, (ci + 1) * nj + cj + 1, ci * nj + cj + 1], 1)
+    used, inverse = np.unique(corners, return_inverse=True)
+    quads = inverse.reshape(-1, 4)
+    points = lattice.reshape(-1, 2)[used]
+
+    # boundary edges, directed with the region on their left (CCW cell order)
+    padded = np.pad(cells, 1)
+    across = [padded[ci + 1, cj], padded[ci + 2, cj + 1], padded[ci + 1, cj + 2], padded[ci, cj + 1]]
+    edges = []
+    for k in range(4):
+        out = ~across[k]
+        edges.append(np.stack([quads[out, k], quads[out, (k + 1) % 4]], 1))
+    edges = np.concatenate(edges)
+    nxt = dict(zip(edges[:, 0].tolist(), edges[:, 1].tolist()))
+    prv = dict(zip(edges[:, 1].tolist(), edges[:, 0].tolist()))
+    bverts = np.array(sorted(nxt))
+
+    # partners on the contour: the root of the signed distance along the outward
+    # normal (bisection: it cannot jump across a narrow gap the way a closest-point
+    # projection can), then smoothing along the loop, kept on the contour
+    pos = points[bverts]
+    tangent = points[[nxt[v] for v in bverts]] - points[[prv[v] for v in bverts]]
+    normal = np.stack([tangent[:, 1], -tangent[:, 0]], 1)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    partner = pos + normal * _root_along(fp, pos, normal, 2.0 * h)[:, None]
+    slot = {v: i for i, v in enumerate(bverts.tolist())}
+    partner, on_poly, polys = _spread_on_contour(fp, partner, bverts, nxt, slot, points)
+
+    n0 = len(points)
+    points = np.vstack([points, partner])
+    new = n0 + np.arange(len(bverts))
+    pa = new[[slot[a] for a in edges[:, 0]]]
+    pb = new[[slot[b] for b in edges[:, 1]]]
+    pillow = np.stack([edges[:, 1], edges[:, 0], pa, pb], 1)
+    quads = np.vstack([quads, pillow])
+    contour = np.zeros(len(points), bool)
+    contour[n0:] = True
+    on_poly_all = np.full(len(points), -1)
+    on_poly_all[n0:] = on_poly
+    points = _optimise(points, quads, contour, h, on_poly_all, polys)
+    return QuadMesh(points, quads, contour, _rings(quads, len(quads) - len(pillow)))
+
+
+def _contour_polylines(fp: Footprint) -> list[np.ndarray]:
+    """Closed zero-level polylines of the footprint's signed distance, (M, 2) parameter coordinates."""
+    g = fp.grid
+    out = []
+    for c in find_contours(fp.sdf, 0.0):
+        pts = np.array([g.s0, g.t0]) + c * g.step
+        if len(pts) > 3 and np.allclose(pts[0], pts[-1]):
+            out.append(pts[:-1])
+    return out
+
+
+def _arc_project(poly: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Arc-length coordinate (N,) on a closed polyline (M, 2) of the closest point to each of p (N, 2),
+    and the distance to it."""
+    a = poly
+    b = np.roll(poly, -1, axis=0)
+    seg = b - a
+    seg_len = np.linalg.norm(seg, axis=1)
+    cum = np.r_[0.0, np.cumsum(seg_len)[:-1]]
+    rel = p[:, None, :] - a[None]  # (N, M, 2)
+    t = np.clip((rel * seg[None]).sum(-1) / np.maximum(seg_len**2, 1e-12)[None], 0, 1)
+    d = np.linalg.norm(rel - t[..., None] * seg[None], axis=-1)
+    k = np.argmin(d, axis=1)
+    return cum[k] + t[np.arange(len(p)), k] * seg_len[k], d[np.arange(len(p)), k]
+
+
+def _arc_point(poly: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Points (N, 2) at arc lengths u (N,) along a closed polyline."""
+    seg = np.roll(poly, -1, axis=0) - poly
+    seg_len = np.linalg.norm(seg, axis=1)
+    cum = np.r_[0.0, np.cumsum(seg_len)]
+    u = np.mod(u, cum[-1])
+    k = np.clip(np.searchsorted(cum, u, side="right") - 1, 0, len(poly) - 1)
+    return poly[k] + ((u - cum[k]) / np.maximum(seg_len[k], 1e-12))[:, None] * seg[k]
+
+
+def _spread_on_contour(fp: Footprint, partner: np.ndarray, bverts: np.ndarray, nxt: dict, slot: dict,
+                       points: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Place each boundary loop's partners on its contour polyline in loop order.
+
+    Partners are spaced along the contour in proportion to the staircase edge
+    lengths, starting where they fit their first guesses best: ordered, never
+    crossing.  A loop that does not follow a single contour (it would need
+    partners on two of them) keeps its first guesses.
+    """
+    polys = _contour_polylines(fp)
+    on_poly = np.full(len(partner), -1)
+    if not polys:
+        return partner, on_poly, polys
+    partner = partner.copy()
+    seen: set[int] = set()
+    for start in bverts.tolist():
+        if start in seen:
+            continue
+        loop = [start]
+        while nxt[loop[-1]] != start:
+            loop.append(nxt[loop[-1]])
+        seen.update(loop)
+        idx = np.array([slot[v] for v in loop])
+        guess = partner[idx]
+        fits = [_arc_project(poly, guess) for poly in polys]
+        best = int(np.argmin([np.median(d) for _, d in fits]))
+        u, dist = fits[best]
+        poly = polys[best]
+        length = float(np.linalg.norm(np.roll(poly, -1, axis=0) - poly, axis=1).sum())
+        if np.percentile(dist, 90) > 0.5 * np.sqrt(fp.area_mm2()) or length <= 0:
+            continue
+        steps = np.linalg.norm(points[np.roll(loop, -1)] - points[loop], axis=1)
+        frac = np.r_[0.0, np.cumsum(steps)[:-1]] / steps.sum()
+        # the contour may run either way round; pick the direction the guesses follow
+        du = np.mod(np.diff(np.r_[u, u[0]]), length)
+        sign = 1.0 if np.median(du) < 0.5 * length else -1.0
+        target = sign * frac * length
+        offset = np.angle(np.mean(np.exp(1j * 2 * np.pi * (u - target) / length))) * length / (2 * np.pi)
+        # keep each partner near its own guess: smooth only the residual from even spacing,
+        # more and more until the partners follow the loop's order
+        resid = np.mod(u - (offset + target) + 0.5 * length, length) - 0.5 * length
+        spacing = length / len(loop)
+        for sigma in (1.0, 2.0, 4.0, 8.0, 16.0, np.inf):
+            smooth = np.full_like(resid, resid.mean()) if np.isinf(sigma) else ndi.gaussian_filter1d(resid, sigma, mode="wrap")
+            final = offset + target + smooth
+            if np.all(sign * np.diff(np.r_[final, final[0] + sign * length]) > 0.3 * spacing):
+                break
+        target = final - offset
+        partner[idx] = _arc_point(poly, offset + target)
+        on_poly[idx] = best
+    return partner, on_poly, polys
+
+
+def _optimise(points: np.ndarray, quads: np.ndarray, contour: np.ndarray, h: float, on_poly: np.ndarray,
+              polys: list[np.ndarray], sweeps: int = 20, good: float = 0.85) -> np.ndarray:
+    """Maximise the worst quad around every node by coordinate ascent.
+
+    Each sweep offers every node whose worst adjacent quad is below ``good`` a
+    few moves - the mean of its neighbours, short steps in eight directions, or
+    for contour nodes short steps along their contour polyline - scores each
+    with the neighbours held still, and applies the best gains on an
+    independent set (no two moved nodes share a quad).  Nothing gets worse.
+    """
+    n = len(points)
+    e = np.concatenate([quads[:, [0, 1]], quads[:, [1, 2]], quads[:, [2, 3]], quads[:, [3, 0]]])
+    e = np.unique(np.sort(e, 1), axis=0)
+    deg = np.maximum(np.bincount(e.ravel(), minlength=n), 1)[:, None]
+    dirs = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [0.7, 0.7], [-0.7, 0.7], [0.7, -0.7], [-0.7, -0.7]])
+    slid = [np.flatnonzero(on_poly == k) for k in range(len(polys))]
+    arc = {k: _arc_project(polys[k], points[idx])[0] for k, idx in enumerate(slid) if len(idx)}
+    stuck = contour & (on_poly < 0)
+
+    def node_min(q: np.ndarray) -> np.ndarray:
+        m = np.full(n, np.inf)
+        np.minimum.at(m, quads.ravel(), np.repeat(q, 4))
+        return m
+
+    for _ in range(sweeps):
+        current = node_min(_shape_of(points[quads]))
+        todo = (current < good) & ~stuck
+        if not todo.any():
+            break
+        acc = np.zeros_like(points)
+        np.add.at(acc, e[:, 0], points[e[:, 1]])
+        np.add.at(acc, e[:, 1], points[e[:, 0]])
+        cands = [acc / deg] + [points + step * h * d for step in (0.2, 0.06) for d in dirs]
+        for c in cands:
+            c[contour] = points[contour]
+        for step in (0.3, -0.3, 0.1, -0.1):  # contour nodes slide along their polyline
+            c = points.copy()
+            for k, idx in enumerate(slid):
+                if len(idx):
+                    c[idx] = _arc_point(polys[k], arc[k] + step * h)
+            cands.append(c)
+        best, best_c = current.copy(), np.full(n, -1)
+        corners = points[quads]
+        for ci, c in enumerate(cands):
+            score = np.full(n, np.inf)
+            for slot in range(4):
+                trial = corners.copy()
+                trial[:, slot] = c[quads[:, slot]]
+                np.minimum.at(score, quads[:, slot], _shape_of(trial))
+            better = todo & (score > best + 1e-6)
+            best[better], best_c[better] = score[better], ci
+        gain = np.where(best_c >= 0, best - current, 0.0)
+        if not (gain > 0).any():
+            break
+        key = gain + 1e-9 * (n - np.arange(n)) / n
+        around = np.full(n, -np.inf)
+        np.maximum.at(around, quads.ravel(), np.repeat(key[quads].max(1), 4))
+        move = (gain > 0) & (key >= around)
+        for ci, c in enumerate(cands):
+            sel = move & (best_c == ci)
+            points[sel] = c[sel]
+        for k, idx in enumerate(slid):
+            if len(idx):
+                arc[k] = _arc_project(polys[k], points[idx])[0]
+    return points
+
+
+def _shape_of(corners: np.ndarray) -> np.ndarray:
+    """What the optimiser maximises: the quad's scaled Jacobian, or twice its shortest over
+    longest edge if lower (the scaled Jacobian alone would let an edge shrink to nothing)."""
+    edges = np.linalg.norm(np.roll(corners, -1, axis=1) - corners, axis=-1)
+    return np.minimum(_quality_of(corners), 2.0 * edges.min(1) / np.maximum(edges.max(1), 1e-12))
+
+
+def _quality_of(corners: np.ndarray) -> np.ndarray:
+    """:func:`quad_quality` on corner coordinates (Q, 4, 2)."""
+    nxt = np.roll(corners, -1, axis=1) - corners
+    prv = np.roll(corners, 1, axis=1) - corners
+    cross = nxt[..., 0] * prv[..., 1] - nxt[..., 1] * prv[..., 0]
+    norm = np.linalg.norm(nxt, axis=-1) * np.linalg.norm(prv, axis=-1)
+    return (cross / np.maximum(norm, 1e-12)).min(1)
+
+
+def _rings(quads: np.ndarray, first_pillow: int) -> np.ndarray:
+    """Distance in quads from the pillow ring (ring 0), by breadth-first search over shared edges."""
+    e = np.concatenate([quads[:, [0, 1]], quads[:, [1, 2]], quads[:, [2, 3]], quads[:, [3, 0]]])
+    owner = np.tile(np.arange(len(quads)), 4)
+    key = np.sort(e, 1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    k, o = key[order], owner[order]
+    same = np.all(k[1:] == k[:-1], axis=1)
+    a, b = o[:-1][same], o[1:][same]
+    adj: list[list[int]] = [[] for _ in range(len(quads))]
+    for x, y in zip(a.tolist(), b.tolist()):
+        adj[x].append(y)
+        adj[y].append(x)
+    ring = np.full(len(quads), -1)
+    queue = deque(range(first_pillow, len(quads)))
+    ring[first_pillow:] = 0
+    while queue:
+        q = queue.popleft()
+        for r in adj[q]:
+            if ring[r] < 0:
+                ring[r] = ring[q] + 1
+                queue.append(r)
+    return ring
