@@ -53,10 +53,12 @@ class HexOptions:
     min_thickness: float = 0.2
     edge_fraction: float = 0.35  # the contour runs where thickness is this fraction of the median
     max_slope_deg: float = 55.0  # or where the rim rolls over steeper than this
+    pass_band: float = 0.02  # windowed-sinc smoothing of the cartilage surface (smaller: smoother)
 
 
 #: The fallback chain: each entry changes some options; the first that passes the gate wins.
 FALLBACKS: tuple[tuple[str, dict], ...] = (
+    ("smoother_surface", {"pass_band": 0.01}),
     ("finer_rays", {"ray_step_fraction": 0.125}),
     ("deeper_inset", {"inset": 0.8}),
     ("smaller_elements", {"element_size_factor": 0.75}),
@@ -72,19 +74,32 @@ class CartilageMesh:
 
 
 def _domain(tissue: str, points: np.ndarray, labels: sitk.Image):
+    """The projection domain of a cartilage from its surface points (N, 3).
+
+    Femoral: a cylinder about the condylar (medial-lateral) axis.  Patellar: a
+    cylinder about the patella's superior-inferior axis: its articular surface
+    curves medio-laterally over the ridge, and radial rays meet the periphery
+    far less obliquely than the rays of a plane.  Tibial plates: a plane.
+    The bone must lie on the rays' starting side, or the plane is used.
+    """
     bone = sitk.GetArrayViewFromImage(labels) == LABEL[BONE_OF[tissue]]
-    if tissue == "femoral_cartilage":
-        return CylinderDomain.fit(points, ml_hint=np.array([1.0, 0.0, 0.0]))
     if not bone.any():
         raise KneeMeshError("bone_missing", f"{tissue}: its bone ({BONE_OF[tissue]}) is not labelled; "
-                            "the projection plane needs it to tell the bone side from the joint side.")
-    idx = np.argwhere(bone)[:: 97, ::-1]
-    return PlaneDomain.fit(points, voxel_to_lps(labels, idx).mean(0))
+                            "the projection needs it to tell the bone side from the joint side.")
+    bone_centre = voxel_to_lps(labels, np.argwhere(bone)[::97, ::-1]).mean(0)
+    axis_hint = {"femoral_cartilage": [1.0, 0.0, 0.0], "patellar_cartilage": [0.0, 0.0, 1.0]}.get(tissue)
+    if axis_hint is not None:
+        cyl = CylinderDomain.fit(points, ml_hint=np.array(axis_hint))
+        v = bone_centre - cyl.origin
+        bone_r = np.linalg.norm(v - (v @ cyl.axis) * cyl.axis)
+        if bone_r < cyl.radius:
+            return cyl
+    return PlaneDomain.fit(points, bone_centre)
 
 
 def _attempt(labels: sitk.Image, tissue: str, opts: HexOptions, h: float):
     cm = clean_mask(labels, LABEL[tissue], opts.closing_voxels, tissue, min_component_ml=opts.min_component_ml)
-    surface = mask_surface(cm, decimation=0.5)
+    surface = mask_surface(cm, decimation=0.5, pass_band=opts.pass_band)
     pts = np.asarray(surface.points)
     domain = _domain(tissue, pts, labels)
     hf = height_field(surface, domain, domain.to_2d(pts), step=h * opts.ray_step_fraction)

@@ -7,10 +7,14 @@
    projection direction is not sheared.  Where that ray misses (the rim), the
    domain ray's articular height is used.
 3. At the rim the column keeps a minimum height, ``layers x longest adjacent
-   edge / 5.5``, so no element's edge ratio exceeds 5.5 (the reconstructed rim
+   edge / 5``, so no element's edge ratio exceeds 5.5 (the reconstructed rim
    tapers to nothing), and the thickness of the two outer rings is smoothed so
    the articular surface does not drop over a single element.
-4. ``layers`` element layers are interpolated linearly along each column.
+4. Each node's column direction is chosen among blends of the bone normal
+   and the domain ray to maximise the worst element around it
+   (:mod:`.optimize`); where an element stays below 0.5, the column may be
+   shortened or lengthened by up to 20%.
+5. ``layers`` element layers are interpolated linearly along each column.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from kneemesh_core.hexmesh.quadmesh import QuadMesh
 from kneemesh_core.hexmesh.rays import crossings
 
 #: Largest edge ratio the rim columns are built for.
-EDGE_RATIO_TARGET = 5.5
+EDGE_RATIO_TARGET = 5.0
 
 
 @dataclass
@@ -112,6 +116,23 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm) -> HexMesh:
         d = w * normal + (1 - w) * ray_dir
         candidates.append(column(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)))
     top = choose_tops(bone, np.stack(candidates), quads)
+    # smoothing constrained to the articular surface: each column may take the mean
+    # direction of its neighbours' columns, re-cast onto the surface
+    # ... or tilt a little in any of four directions, re-cast onto the surface
+    t1 = np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(normal, t1)
+    unit = lambda v: v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)  # noqa: E731
+    for _ in range(4):
+        d = unit(top - bone)
+        tries = [top, column(unit(d + _node_mean(d, edges, n)))]
+        tries += [column(unit(d + a * t)) for a in (0.15, -0.15) for t in (t1, t2)]
+        top = choose_tops(bone, np.stack(tries), quads)
+    # last resort where a column is still poor: a slightly shorter or taller column
+    # (leaves the articular surface by a fraction of the local thickness, there only)
+    length_now = np.linalg.norm(top - bone, axis=1, keepdims=True)
+    variants = [bone + unit(top - bone) * np.maximum(length_now * f, floor[:, None]) for f in (1.0, 0.9, 1.1, 0.8, 1.2)]
+    top = choose_tops(bone, np.stack(variants), quads, good=0.5)
 
     frac = (np.arange(layers + 1) / layers)[:, None, None]
     points = (bone[None] + (top - bone)[None] * frac).reshape(-1, 3)

@@ -54,9 +54,10 @@ def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction
     median thickness, do not count: the rounded rim of a reconstructed
     cartilage tapers to nothing, and columns that thin make flat, sheared
     elements; the mesh edge is a short wall instead (blending slopes it later).
-    Where the rim rolls over (articular surface steeper than ``max_slope_deg``
+    Where the rim rolls over (either surface steeper than ``max_slope_deg``
     to the rays), the footprint is trimmed from the outside in: a column
-    there would be sheared beyond a scaled Jacobian of cos(max slope).
+    there would be sheared, and a quad stretched, beyond what a scaled
+    Jacobian of 0.5 allows.
     ``s_scale`` converts an s-step into mm along the surface (cylinder: R0 / r).
     Islands smaller than
     ``min_area`` mm^2 are dropped; holes smaller than ``min_hole`` mm^2 (ray
@@ -72,9 +73,11 @@ def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction
     valid = hf.hit & (thick > 0)
     _, (ii, jj) = ndi.distance_transform_edt(~valid, return_indices=True)
     joint_filled = hf.joint[ii, jj]
-    gs, gt = np.gradient(joint_filled, step)
-    slope = np.hypot(gs * s_scale, gt)
-    steep = slope > np.tan(np.deg2rad(max_slope_deg))
+    bone_filled = hf.bone[ii, jj]
+    steep = np.zeros_like(mask)
+    for height in (joint_filled, bone_filled):
+        gs, gt = np.gradient(height, step)
+        steep |= np.hypot(gs * s_scale, gt) > np.tan(np.deg2rad(max_slope_deg))
     rim = ndi.binary_propagation(~mask, mask=~mask | steep)
     mask &= ~rim
     mask = remove_small_objects(mask, max_size=max(int(min_area / px), 1))
@@ -86,6 +89,6 @@ def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction
     sdf = np.where(mask, -(inside_d - 0.5 * step), outside_d - 0.5 * step)
     sdf = ndi.gaussian_filter(sdf, 1.0)
     # heights outside the hits: those of the nearest ray that hit
-    bone = hf.bone[ii, jj]
+    bone = bone_filled
     joint = joint_filled
     return Footprint(hf, mask, sdf.astype(float), bone, joint, min_thickness)

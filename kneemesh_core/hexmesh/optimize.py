@@ -75,12 +75,14 @@ def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, s
         if not todo.any():
             break
         best, best_k = current.copy(), choice.copy()
+        active = np.flatnonzero(todo[quads].any(1))  # only columns around nodes being improved
+        aq, acols = quads[active], cols[active]
         for k in range(len(candidates)):
             score = np.full(n, np.inf)
             for slot in range(4):
-                trial = cols.copy()
-                trial[:, 4 + slot] = candidates[k][quads[:, slot]]
-                np.minimum.at(score, quads[:, slot], scaled_jacobian(trial))
+                trial = acols.copy()
+                trial[:, 4 + slot] = candidates[k][aq[:, slot]]
+                np.minimum.at(score, aq[:, slot], scaled_jacobian(trial))
             better = todo & (score > best + 1e-6)
             best[better], best_k[better] = score[better], k
         gain = np.where(best_k != choice, best - current, 0.0)

@@ -274,31 +274,34 @@ def _optimise(points: np.ndarray, quads: np.ndarray, contour: np.ndarray, h: flo
         np.minimum.at(m, quads.ravel(), np.repeat(q, 4))
         return m
 
+    steps = (0.3, -0.3, 0.1, -0.1)  # contour nodes slide along their polyline
     for _ in range(sweeps):
         current = node_min(_shape_of(points[quads]))
         todo = (current < good) & ~stuck
         if not todo.any():
             break
+        active = np.flatnonzero(todo[quads].any(1))  # only quads around nodes being improved
+        aq = quads[active]
         acc = np.zeros_like(points)
         np.add.at(acc, e[:, 0], points[e[:, 1]])
         np.add.at(acc, e[:, 1], points[e[:, 0]])
         cands = [acc / deg] + [points + step * h * d for step in (0.2, 0.06) for d in dirs]
         for c in cands:
             c[contour] = points[contour]
-        for step in (0.3, -0.3, 0.1, -0.1):  # contour nodes slide along their polyline
+        for step in steps:
             c = points.copy()
             for k, idx in enumerate(slid):
                 if len(idx):
                     c[idx] = _arc_point(polys[k], arc[k] + step * h)
             cands.append(c)
         best, best_c = current.copy(), np.full(n, -1)
-        corners = points[quads]
+        corners = points[aq]
         for ci, c in enumerate(cands):
             score = np.full(n, np.inf)
             for slot in range(4):
                 trial = corners.copy()
-                trial[:, slot] = c[quads[:, slot]]
-                np.minimum.at(score, quads[:, slot], _shape_of(trial))
+                trial[:, slot] = c[aq[:, slot]]
+                np.minimum.at(score, aq[:, slot], _shape_of(trial))
             better = todo & (score > best + 1e-6)
             best[better], best_c[better] = score[better], ci
         gain = np.where(best_c >= 0, best - current, 0.0)
@@ -311,9 +314,12 @@ def _optimise(points: np.ndarray, quads: np.ndarray, contour: np.ndarray, h: flo
         for ci, c in enumerate(cands):
             sel = move & (best_c == ci)
             points[sel] = c[sel]
-        for k, idx in enumerate(slid):
+        n_plain = len(cands) - len(steps)
+        for k, idx in enumerate(slid):  # arc positions of the nodes that slid
             if len(idx):
-                arc[k] = _arc_project(polys[k], points[idx])[0]
+                chosen = best_c[idx]
+                slid_now = move[idx] & (chosen >= n_plain)
+                arc[k][slid_now] += np.array(steps)[chosen[slid_now] - n_plain] * h
     return points
 
 
