@@ -100,16 +100,20 @@ def mesh(
     only: str = typer.Option("all", "--only", help="all, bones or cartilage."),
     stl: bool = typer.Option(False, "--stl", help="Also write .stl files."),
     bone_edge: float = typer.Option(3.0, "--bone-edge", help="Target bone triangle edge, mm."),
+    element_size: float = typer.Option(1.0, "--element-size", help="Cartilage in-plane element edge, mm."),
+    layers: int = typer.Option(4, "--layers", min=1, help="Cartilage element layers through the thickness."),
     workers: int = typer.Option(2, "--workers", min=1, help="Processes meshing tissues in parallel."),
 ):
-    """Mesh a knee: FE-ready bone shells and tissue surfaces, with report.json."""
+    """Mesh a knee: closed bone shells (meshes/*.vtp), all-hex cartilage (meshes/*.vtu), report.json."""
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
+    from kneemesh_core.hexmesh import HexOptions
     from kneemesh_core.pipeline import JobOptions, run
     from kneemesh_core.surfaces.tissue import SurfaceOptions
 
     opts = JobOptions(preset=preset, labels=labels, side=side, only=only, stl=stl,
-                      surface=SurfaceOptions(bone_edge_mm=bone_edge))
+                      surface=SurfaceOptions(bone_edge_mm=bone_edge),
+                      hex=HexOptions(element_size=element_size, layers=layers))
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=err,
                   transient=not err.is_terminal) as bar:
         tasks: dict[str, int] = {}
@@ -123,17 +127,24 @@ def mesh(
         with _clear_errors():
             report = run(labels_file, out_dir, opts, workers=workers, progress=progress)
     t = Table(title=f"{out_dir} ({report['input']['side']} knee, {report['input']['preset']} labels)")
-    for col in ("tissue", "status", "s", "cells", "volume ml", "label ml", "dist mean/p95 mm", "note"):
+    for col in ("tissue", "status", "s", "elements", "volume ml", "label ml", "quality", "fidelity"):
         t.add_column(col)
     for tissue, e in report["tissues"].items():
-        if e["status"] != "ok":
+        if e["status"] != "ok" and "n_elements" not in e:
             t.add_row(tissue, "[red]failed[/]", f"{e['seconds']:.1f}", "", "", "", "", e["reason"])
             continue
-        d = e.get("surface_distance_mm")
-        closed = e.get("watertight")
-        note = ("closed, manifold" if closed and e.get("manifold") else "") if closed is not None else f"{e['open_edges']} open edges"
-        t.add_row(tissue, "ok", f"{e['seconds']:.1f}", str(e["n_cells"]), f"{e['volume_ml']:.2f}",
-                  f"{e['label_volume_ml']:.2f}", f"{d['mean']:.2f}/{d['p95']:.2f}" if d else "", note)
+        status = "ok" if e["status"] == "ok" else "[red]failed[/]"
+        if "n_elements" in e:  # hex cartilage
+            quality = f"min SJ {e['min_scaled_jacobian']:.2f}, {e['frac_sj_below_0_5']:.2%} < 0.5"
+            fid = f"cover {e['coverage']:.1%}, dev p95 {e['surface_deviation_mm']['p95']:.2f} mm"
+            count = str(e["n_elements"])
+        else:  # bone shell
+            closed = "closed, manifold" if e["watertight"] and e["manifold"] else "[red]open[/]"
+            quality = f"{closed}, edge {e['edge_mm']['mean']:.1f} mm"
+            fid = f"dist {e['surface_distance_mm']['mean']:.2f}/{e['surface_distance_mm']['p95']:.2f} mm"
+            count = str(e["n_cells"])
+        t.add_row(tissue, status, f"{e['seconds']:.1f}", count, f"{e['volume_ml']:.2f}", f"{e['label_volume_ml']:.2f}",
+                  quality, fid)
     out.print(t)
     out.print(f"report: {Path(out_dir) / 'report.json'}")
     if report["summary"]["failed"]:

@@ -30,6 +30,7 @@ from kneemesh_core import __version__
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.io import read_label_map, write_image
 from kneemesh_core.knee import canonicalise, describe
+from kneemesh_core.hexmesh import HexOptions, mesh_cartilage
 from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct
 from kneemesh_core.tissues import BONES, CARTILAGES, TISSUES, resolve_convention
 
@@ -51,6 +52,7 @@ class JobOptions:
     only: str = "all"
     stl: bool = False
     surface: SurfaceOptions = SurfaceOptions()
+    hex: HexOptions = HexOptions()
 
     def tissues(self) -> tuple[str, ...]:
         if self.only not in GROUPS:
@@ -64,6 +66,7 @@ class JobOptions:
     def from_dict(cls, d: dict) -> "JobOptions":
         d = dict(d)
         d["surface"] = SurfaceOptions(**d.get("surface", {}))
+        d["hex"] = HexOptions(**d.get("hex", {}))
         return cls(**d)
 
 
@@ -108,15 +111,31 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
     out = Path(out_dir)
     try:
         labels = read_label_map(out / LABELS_FILE).image
-        mesh, facts = reconstruct(labels, tissue, opts.surface)
-        folder = out / ("meshes" if tissue in BONES else "surfaces")
+        folder = out / "meshes"
         folder.mkdir(exist_ok=True)
-        files = [folder / f"{tissue}.vtp"]
-        _atomic_save_mesh(mesh, files[0])
-        if opts.stl:
-            files.append(folder / f"{tissue}.stl")
-            _atomic_save_mesh(mesh, files[-1])
-        entry = {"status": "ok", **facts, "files": [str(f.relative_to(out)) for f in files]}
+        if tissue in BONES:
+            mesh, facts = reconstruct(labels, tissue, opts.surface)
+            files = [folder / f"{tissue}.vtp"]
+            _atomic_save_mesh(mesh, files[0])
+            if opts.stl:
+                files.append(folder / f"{tissue}.stl")
+                _atomic_save_mesh(mesh, files[-1])
+            entry = {"status": "ok", **facts}
+        else:
+            cm = mesh_cartilage(labels, tissue, opts.hex)
+            facts = cm.facts
+            ok = facts["gate_passed"]
+            (out / "surfaces").mkdir(exist_ok=True)
+            files = [folder / f"{tissue}{'' if ok else '.rejected'}.vtu", out / "surfaces" / f"{tissue}.vtp"]
+            _atomic_save_mesh(cm.grid(), files[0])
+            _atomic_save_mesh(cm.surface, files[1])
+            entry = {"status": "ok" if ok else "failed", **facts}
+            if not ok:
+                entry["code"] = "quality_gate"
+                entry["reason"] = (f"quality gate not met after {len(facts['attempts'])} attempts: min scaled Jacobian "
+                                   f"{facts['min_scaled_jacobian']}, {facts['inverted']} inverted, "
+                                   f"{facts['frac_edge_ratio_above_6']:.4%} with edge ratio > 6; best mesh kept as {files[0].name}")
+        entry["files"] = [str(f.relative_to(out)) for f in files]
     except KneeMeshError as exc:
         entry = {"status": "failed", "reason": exc.message, "code": exc.code}
     except Exception as exc:  # a failed tissue never sinks the rest of the knee

@@ -29,7 +29,7 @@ from kneemesh_core.hexmesh.quadmesh import QuadMesh
 from kneemesh_core.hexmesh.rays import crossings
 
 #: Largest edge ratio the rim columns are built for.
-EDGE_RATIO_TARGET = 5.0
+EDGE_RATIO_TARGET = 5.8
 
 
 @dataclass
@@ -66,6 +66,26 @@ def _node_mean(values: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:
     np.add.at(acc, edges[:, 1], values[edges[:, 0]])
     deg = np.bincount(edges.ravel(), minlength=n).reshape((n,) + (1,) * (values.ndim - 1))
     return acc / np.maximum(deg, 1)
+
+
+def _edge_ratio_guard(bone: np.ndarray, top: np.ndarray, quads: np.ndarray, layers: int) -> np.ndarray:
+    """Lengthen the columns whose layer height would give an element an edge ratio above the target.
+
+    The longest edge of an element can lie on its articular face (tilted or
+    diverging columns stretch it), which the bone-side floor does not see.
+    """
+    for _ in range(3):
+        ring_edges = np.concatenate([
+            np.linalg.norm(bone[quads] - bone[np.roll(quads, -1, axis=1)], axis=2),
+            np.linalg.norm(top[quads] - top[np.roll(quads, -1, axis=1)], axis=2)], axis=1).max(1)
+        need = np.zeros(len(bone))
+        np.maximum.at(need, quads.ravel(), np.repeat(layers * ring_edges / EDGE_RATIO_TARGET, 4))
+        length = np.linalg.norm(top - bone, axis=1)
+        short = length < need
+        if not short.any():
+            break
+        top = np.where(short[:, None], bone + (top - bone) * (need / np.maximum(length, 1e-12))[:, None], top)
+    return top
 
 
 def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm) -> HexMesh:
@@ -133,6 +153,7 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm) -> HexMesh:
     length_now = np.linalg.norm(top - bone, axis=1, keepdims=True)
     variants = [bone + unit(top - bone) * np.maximum(length_now * f, floor[:, None]) for f in (1.0, 0.9, 1.1, 0.8, 1.2)]
     top = choose_tops(bone, np.stack(variants), quads, good=0.5)
+    top = _edge_ratio_guard(bone, top, quads, layers)
 
     frac = (np.arange(layers + 1) / layers)[:, None, None]
     points = (bone[None] + (top - bone)[None] * frac).reshape(-1, 3)

@@ -1,0 +1,129 @@
+"""Cartilage meshing robustness: every label map of a folder or glob, and phantoms, through the mesher.
+
+    .venv/bin/python bench/robustness.py [MAPS_OR_GLOBS ...] [--phantoms N] [--workers 2] [--element-size 1.0]
+
+Default maps: every real label map in ../shared/data/real (pymskt and oai_labels).
+Prints the success rate (quality gate passed), a quality table per tissue
+(min scaled Jacobian distribution, fraction < 0.5, edge ratio), fidelity
+(volume error, coverage, articular deviation), fallback counts and time per knee.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import tempfile
+import time
+import warnings
+from collections import Counter, defaultdict
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+from rich.console import Console
+from rich.progress import Progress
+from rich.table import Table
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+CARTILAGES = ("femoral_cartilage", "medial_tibial_cartilage", "lateral_tibial_cartilage", "patellar_cartilage")
+console = Console(width=220)
+
+
+def mesh_knee(source: str, element_size: float) -> tuple[str, dict, float]:
+    """All four cartilages of one knee (a path, or 'phantom:SEED:SIDE:SEVERITY'); report entries."""
+    warnings.filterwarnings("ignore")
+    from kneemesh_core.hexmesh import HexOptions, mesh_cartilage
+    from kneemesh_core.io import Volume
+    from kneemesh_core.knee import canonicalise, load_knee
+
+    t0 = time.perf_counter()
+    if source.startswith("phantom:"):
+        from kneemesh_core.phantom import make_phantom
+
+        _, seed, side, sev = source.split(":")
+        _, labels, _ = make_phantom(int(seed), side, int(sev))
+        knee = canonicalise(Volume(labels, f"phantom_{side}.nii.gz"))
+    else:
+        knee = load_knee(source)
+    out = {}
+    for tissue in CARTILAGES:
+        t = time.perf_counter()
+        try:
+            facts = mesh_cartilage(knee.labels, tissue, HexOptions(element_size=element_size)).facts
+            facts["status"] = "ok" if facts["gate_passed"] else "failed"
+        except Exception as exc:  # noqa: BLE001 - the benchmark records every failure
+            facts = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+        facts["seconds"] = time.perf_counter() - t
+        out[tissue] = facts
+    return source, out, time.perf_counter() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("maps", nargs="*")
+    ap.add_argument("--phantoms", type=int, default=0, help="also mesh N phantoms across sides and severities")
+    ap.add_argument("--no-real", action="store_true", help="phantoms only")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--element-size", type=float, default=1.0)
+    args = ap.parse_args()
+    sources = [p for m in args.maps for p in sorted(glob.glob(m))]
+    if not sources and not args.no_real:
+        sources = [str(p) for p in sorted((REAL / "pymskt" / "labels").glob("*.nrrd"))
+                   + sorted((REAL / "oai_labels").glob("*.nii.gz"))]
+    sources += [f"phantom:{i}:{'left' if i % 2 else 'right'}:{i % 4}" for i in range(args.phantoms)]
+    results: dict[str, dict] = {}
+    times = []
+    with Progress(console=console) as bar, ProcessPoolExecutor(args.workers) as pool:
+        task = bar.add_task("knees", total=len(sources))
+        futures = [pool.submit(mesh_knee, s, args.element_size) for s in sources]
+        for fut in as_completed(futures):
+            src, out, dt = fut.result()
+            results[src] = out
+            times.append(dt)
+            bad = [t for t, f in out.items() if f["status"] != "ok"]
+            if bad:
+                bar.console.print(f"[red]{Path(src).name}: failed {', '.join(bad)}[/]: " + "; ".join(
+                    out[t].get("reason", f"min SJ {out[t].get('min_scaled_jacobian')}") for t in bad))
+            bar.advance(task)
+
+    per = defaultdict(list)
+    for out in results.values():
+        for t, f in out.items():
+            per[t].append(f)
+    table = Table(title=f"cartilage meshing on {len(results)} knees (element size {args.element_size} mm)")
+    for col in ("tissue", "success", "min SJ: median (worst)", "% SJ<0.5: median (max)", "edge ratio max (worst)",
+                "% ER>6 max", "vol err: median |.| (worst)", "coverage: median (worst)", "dev p95 mm: median (worst)",
+                "fallbacks", "s/tissue median"):
+        table.add_column(col)
+    total_ok = 0
+    for t in CARTILAGES:
+        fs = per[t]
+        ok = [f for f in fs if f["status"] == "ok"]
+        total_ok += len(ok)
+        m = [f for f in fs if "min_scaled_jacobian" in f]
+        if not m:
+            table.add_row(t, f"{len(ok)}/{len(fs)}", *["-"] * 9)
+            continue
+        sj = np.array([f["min_scaled_jacobian"] for f in m])
+        below = np.array([f["frac_sj_below_0_5"] for f in m]) * 100
+        er = np.array([f["max_edge_ratio"] for f in m])
+        er6 = np.array([f["frac_edge_ratio_above_6"] for f in m]) * 100
+        vol = np.abs([f["volume_error"] for f in m])
+        cov = np.array([f["coverage"] for f in m])
+        dev = np.array([f["surface_deviation_mm"]["p95"] for f in m])
+        fb = Counter(x for f in m for x in f["fallbacks"])
+        table.add_row(t, f"{len(ok)}/{len(fs)}", f"{np.median(sj):.3f} ({sj.min():.3f})", f"{np.median(below):.3f} ({below.max():.3f})",
+                      f"{np.median(er):.2f} ({er.max():.2f})", f"{er6.max():.3f}", f"{np.median(vol):.2%} ({vol.max():.2%})",
+                      f"{np.median(cov):.3f} ({cov.min():.3f})", f"{np.median(dev):.3f} ({dev.max():.3f})",
+                      ", ".join(f"{k}: {v}" for k, v in fb.items()) or "none",
+                      f"{np.median([f['seconds'] for f in fs]):.1f}")
+    console.print(table)
+    n = sum(len(v) for v in per.values())
+    console.print(f"success: {total_ok}/{n} cartilages ({total_ok / max(n, 1):.1%}); knees with all four ok: "
+                  f"{sum(all(f['status'] == 'ok' for f in out.values()) for out in results.values())}/{len(results)}; "
+                  f"time per knee (4 cartilages, one process): median {np.median(times):.1f} s, max {max(times):.1f} s")
+
+
+if __name__ == "__main__":
+    main()
