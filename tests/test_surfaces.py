@@ -80,25 +80,36 @@ def test_cartilage_keeps_full_thickness_holes():
     assert euler["intact"] == 2 and euler["holed"] == 0  # a sphere, then a torus: the hole survives
 
 
-def test_job_writes_meshes_and_report_and_isolates_failures(tmp_path):
-    # cartilage-only (imorphics) labels: the bones fail with a clear reason, cartilage still meshes
+def test_job_isolates_failures_and_cartilage_only_labels_fail_clearly(tmp_path):
     knee = load_knee(real(SAMPLE))
+    # no patella bone: the patella and its cartilage fail with reasons, the rest of the knee completes
+    arr = sitk.GetArrayFromImage(knee.labels)
+    arr[arr == LABEL["patella"]] = 0
+    im = sitk.GetImageFromArray(arr)
+    im.CopyInformation(knee.labels)
+    path = write_image(im, tmp_path / "no_patella_right.nrrd")
+    report = run(path, tmp_path / "out", JobOptions(), workers=2)
+    tissues = report["tissues"]
+    assert tissues["patella"]["status"] == "failed" and "no patella" in tissues["patella"]["reason"]
+    assert tissues["patellar_cartilage"]["status"] == "failed" and "patella" in tissues["patellar_cartilage"]["reason"]
+    for ok in ("femur", "tibia", "femoral_cartilage", "medial_tibial_cartilage", "lateral_tibial_cartilage"):
+        assert tissues[ok]["status"] == "ok", (ok, tissues[ok].get("reason"))
+    assert (tmp_path / "out" / "meshes" / "medial_tibial_cartilage.vtu").exists()
+    on_disk = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert on_disk["summary"]["failed"] == ["patella", "patellar_cartilage"]
+    for key in ("status", "reason", "seconds"):
+        assert key in on_disk["tissues"]["patella"]
+
+    # cartilage-only (imorphics) labels: everything that needs a bone says so
     lut = np.zeros(256, np.uint8)
     lut[[LABEL["femoral_cartilage"], LABEL["lateral_tibial_cartilage"], LABEL["medial_tibial_cartilage"],
          LABEL["patellar_cartilage"]]] = [1, 2, 3, 4]
     im = sitk.GetImageFromArray(lut[knee.array])
     im.CopyInformation(knee.labels)
-    path = write_image(im, tmp_path / "imorphics.nrrd")
-    report = run(path, tmp_path / "out", JobOptions(preset="imorphics", only="all"), workers=2)
-    for bone in BONES:
-        assert report["tissues"][bone]["status"] == "failed"
-        assert "no femur" in report["tissues"]["femur"]["reason"]
-    assert report["tissues"]["patellar_cartilage"]["status"] == "ok"
-    assert (tmp_path / "out" / "surfaces" / "patellar_cartilage.vtp").exists()
-    on_disk = json.loads((tmp_path / "out" / "report.json").read_text())
-    assert on_disk["summary"]["failed"] == ["femur", "patella", "tibia"]
-    for key in ("status", "reason", "seconds"):
-        assert key in on_disk["tissues"]["femur"]
+    path = write_image(im, tmp_path / "imorphics_right.nrrd")
+    report = run(path, tmp_path / "imo", JobOptions(preset="imorphics", only="bones"), workers=1)
+    assert all(report["tissues"][b]["status"] == "failed" for b in BONES)
+    assert "no femur" in report["tissues"]["femur"]["reason"]
 
 
 def test_cli_mesh_bones_only_with_stl(tmp_path):

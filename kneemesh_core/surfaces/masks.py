@@ -34,7 +34,7 @@ class CleanMask:
 
 
 def clean_mask(labels: sitk.Image, value: int, closing_voxels: int, name: str = "tissue",
-               min_component_ml: float | None = None) -> CleanMask:
+               min_component_ml: float | None = None, fill_holes: bool = False) -> CleanMask:
     """Close a tissue's mask and keep its largest connected component.
 
     Parameters
@@ -46,6 +46,8 @@ def clean_mask(labels: sitk.Image, value: int, closing_voxels: int, name: str = 
     min_component_ml : None keeps the largest component only (the paper); a
         volume keeps every component at least that big (OA cartilage split by
         a denuded band is still cartilage).
+    fill_holes : fill cavities enclosed by the tissue (unlabelled voxels inside a
+        bone would otherwise become inner shells).
     """
     arr = sitk.GetArrayViewFromImage(labels)
     where = np.nonzero(arr == value)
@@ -77,6 +79,8 @@ def clean_mask(labels: sitk.Image, value: int, closing_voxels: int, name: str = 
             keep = big[comp]
     else:
         keep = closed.astype(bool)
+    if fill_holes:
+        keep = ndi.binary_fill_holes(keep)
     # what the closing added is not "discarded"; count original voxels outside the kept component
     discarded = int(np.count_nonzero(crop.astype(bool) & ~keep))
     return CleanMask(

@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import time
-
-import numpy as np
 import pyvista as pv
 import SimpleITK as sitk
 
@@ -21,7 +18,13 @@ class SurfaceOptions:
     """Surface and bone meshing parameters (the paper's defaults)."""
 
     bone_edge_mm: float = 3.0
-    bone_closing_voxels: int = 3
+    # The paper closes bone with a 3-voxel kernel. On manual OAI labels that fills the
+    # slice-to-slice jaggedness and pushes the surface outwards: 42 real knees measured
+    # 0.189 -> 0.179 mm mean and 0.527 -> 0.500 mm p95 distance to the label without it.
+    # Internal cavities are filled instead; set 3 for the paper's behaviour.
+    bone_closing_voxels: int = 0
+    bone_smoothing_iterations: int = 10
+    bone_pass_band: float = 0.1
     cartilage_closing_voxels: int = 5
     cartilage_decimation: float = 0.8
 
@@ -42,11 +45,13 @@ def reconstruct(labels: sitk.Image, tissue: str, opts: SurfaceOptions) -> tuple[
     """
     is_bone = tissue in BONES
     closing = opts.bone_closing_voxels if is_bone else opts.cartilage_closing_voxels
-    cm = clean_mask(labels, LABEL[tissue], closing, tissue)
+    cm = clean_mask(labels, LABEL[tissue], closing, tissue, fill_holes=is_bone)
     facts = {"label_volume_ml": round(cm.label_ml, 4), "discarded_ml": round(cm.discarded_ml, 4),
              "components": cm.n_components}
     if is_bone:
-        mesh = bone_mesh(mask_surface(cm, decimation=0.0), opts.bone_edge_mm)
+        smooth = mask_surface(cm, decimation=0.0, smoothing_iterations=opts.bone_smoothing_iterations,
+                              pass_band=opts.bone_pass_band)
+        mesh = bone_mesh(smooth, opts.bone_edge_mm)
         e = edges_mm(mesh)
         facts.update(topology(mesh))
         facts["edge_mm"] = {"mean": round(float(e.mean()), 3), "min": round(float(e.min()), 3),
