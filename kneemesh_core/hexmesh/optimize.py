@@ -40,9 +40,17 @@ def scaled_jacobian(points: np.ndarray, hexes: np.ndarray | None = None) -> np.n
     return np.minimum(out, det / np.maximum(norm, 1e-30))
 
 
+def column_score(cols: np.ndarray) -> np.ndarray:
+    """What the column optimiser maximises (H,): the scaled Jacobian, or less where the articular
+    face shrinks (converging columns squeeze its edges while the Jacobian, blind to scale, stays fine)."""
+    bottom = np.linalg.norm(cols[:, [1, 2, 3, 0]] - cols[:, :4], axis=2)
+    top = np.linalg.norm(cols[:, [5, 6, 7, 4]] - cols[:, 4:], axis=2)
+    return np.minimum(scaled_jacobian(cols), 1.25 * top.min(1) / np.maximum(bottom.mean(1), 1e-12))
+
+
 def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, sweeps: int = 8,
                 good: float = 0.7) -> np.ndarray:
-    """Per node, the candidate top position (of K) that maximises the worst adjacent column quality.
+    """Per node, the candidate top position (of K) that maximises the worst adjacent :func:`column_score`.
 
     Coordinate ascent: each sweep scores every candidate of every node with its
     neighbours held where they are, then moves an independent set of the nodes
@@ -70,7 +78,7 @@ def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, s
     for _ in range(sweeps):
         cols = columns(top)
         current = np.full(n, np.inf)
-        np.minimum.at(current, quads.ravel(), np.repeat(scaled_jacobian(cols), 4))
+        np.minimum.at(current, quads.ravel(), np.repeat(column_score(cols), 4))
         todo = current < good
         if not todo.any():
             break
@@ -82,7 +90,7 @@ def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, s
             for slot in range(4):
                 trial = acols.copy()
                 trial[:, 4 + slot] = candidates[k][aq[:, slot]]
-                np.minimum.at(score, aq[:, slot], scaled_jacobian(trial))
+                np.minimum.at(score, aq[:, slot], column_score(trial))
             better = todo & (score > best + 1e-6)
             best[better], best_k[better] = score[better], k
         gain = np.where(best_k != choice, best - current, 0.0)
