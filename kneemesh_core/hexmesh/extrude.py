@@ -25,7 +25,7 @@ import numpy as np
 
 from kneemesh_core.hexmesh.footprint import Footprint
 from kneemesh_core.hexmesh.optimize import choose_tops
-from kneemesh_core.hexmesh.quadmesh import QuadMesh
+from kneemesh_core.hexmesh.quadmesh import QuadMesh, quad_edges
 from kneemesh_core.hexmesh.rays import crossings
 
 #: Largest edge ratio the rim columns are built for.
@@ -52,11 +52,6 @@ class HexMesh:
     ring: np.ndarray
     node_layer: np.ndarray
     node_edge: np.ndarray
-
-
-def _edges(quads: np.ndarray) -> np.ndarray:
-    e = np.concatenate([quads[:, [0, 1]], quads[:, [1, 2]], quads[:, [2, 3]], quads[:, [3, 0]]])
-    return np.unique(np.sort(e, 1), axis=0)
 
 
 def _node_mean(values: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:
@@ -94,7 +89,7 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm) -> HexMesh:
     quads = qm.quads
     bone = domain.position(qm.points, fp.sample(fp.bone, qm.points))
     ray_top = domain.position(qm.points, fp.sample(fp.joint, qm.points))
-    edges = _edges(quads)
+    edges = quad_edges(quads)
 
     # bone-side normals (quads are counter-clockwise seen from the joint: normals point to the joint)
     p = bone[quads]

@@ -44,6 +44,12 @@ class QuadMesh:
     ring: np.ndarray
 
 
+def quad_edges(quads: np.ndarray, unique: bool = True) -> np.ndarray:
+    """The edges (E, 2) of quads (Q, 4): all 4Q in quad order, or the unique ones sorted."""
+    e = np.concatenate([quads[:, [0, 1]], quads[:, [1, 2]], quads[:, [2, 3]], quads[:, [3, 0]]])
+    return np.unique(np.sort(e, 1), axis=0) if unique else e
+
+
 def quad_quality(points: np.ndarray, quads: np.ndarray) -> np.ndarray:
     """Scaled Jacobian of 2-D quads (Q,): min over corners of sin(corner angle), negative if inverted."""
     return _quality_of(points[quads])
@@ -261,8 +267,7 @@ def _optimise(points: np.ndarray, quads: np.ndarray, contour: np.ndarray, h: flo
     independent set (no two moved nodes share a quad).  Nothing gets worse.
     """
     n = len(points)
-    e = np.concatenate([quads[:, [0, 1]], quads[:, [1, 2]], quads[:, [2, 3]], quads[:, [3, 0]]])
-    e = np.unique(np.sort(e, 1), axis=0)
+    e = quad_edges(quads)
     deg = np.maximum(np.bincount(e.ravel(), minlength=n), 1)[:, None]
     dirs = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [0.7, 0.7], [-0.7, 0.7], [0.7, -0.7], [-0.7, -0.7]])
     slid = [np.flatnonzero(on_poly == k) for k in range(len(polys))]
@@ -341,9 +346,8 @@ def _quality_of(corners: np.ndarray) -> np.ndarray:
 
 def _rings(quads: np.ndarray, first_pillow: int) -> np.ndarray:
     """Distance in quads from the pillow ring (ring 0), by breadth-first search over shared edges."""
-    e = np.concatenate([quads[:, [0, 1]], quads[:, [1, 2]], quads[:, [2, 3]], quads[:, [3, 0]]])
     owner = np.tile(np.arange(len(quads)), 4)
-    key = np.sort(e, 1)
+    key = np.sort(quad_edges(quads, unique=False), 1)
     order = np.lexsort((key[:, 1], key[:, 0]))
     k, o = key[order], owner[order]
     same = np.all(k[1:] == k[:-1], axis=1)
