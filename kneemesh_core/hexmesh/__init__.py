@@ -57,10 +57,12 @@ class HexOptions:
     edge_fraction: float = 0.35  # the contour runs where thickness is this fraction of the median
     max_slope_deg: float = 55.0  # or where the rim rolls over steeper than this
     pass_band: float = 0.02  # windowed-sinc smoothing of the cartilage surface (smaller: smoother)
+    probe_inset: float = 0.0  # contour nodes read heights this many elements inside (folded rims)
 
 
 #: The fallback chain: each entry changes some options; the first that passes the gate wins.
 FALLBACKS: tuple[tuple[str, dict], ...] = (
+    ("rim_heights_inside", {"probe_inset": 0.3}),
     ("smoother_surface", {"pass_band": 0.01}),
     ("finer_rays", {"ray_step_fraction": 0.125}),
     ("deeper_inset", {"inset": 0.8}),
@@ -127,7 +129,7 @@ def _attempt(labels: sitk.Image, tissue: str, opts: HexOptions, h: float):
     fp = find_footprint(hf, min_thickness=opts.min_thickness, edge_fraction=opts.edge_fraction,
                         max_slope_deg=opts.max_slope_deg, s_scale=s_scale)
     qm = quad_mesh(fp, h, inset=opts.inset)
-    hm = extrude(qm, fp, domain, opts.layers, intersector(surface))
+    hm = extrude(qm, fp, domain, opts.layers, intersector(surface), probe_mm=opts.probe_inset * h)
     q = hex_quality(hm.points, hm.hexes)
     s = summary(q, hm.ring)
     f = fidelity(hm, surface, cm.label_ml)
@@ -158,6 +160,9 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
             raise
         except Exception as exc:  # a geometric failure: record it and fall back
             tried.append(f"{name} ({type(exc).__name__}: {exc})")
+            continue
+        if abs(f["volume_error"]) > 0.5:  # a mesh half again off its cartilage is no mesh
+            tried.append(f"{name} (volume off by {f['volume_error']:.0%})")
             continue
         ok = passes_gate(s)
         score = (ok, passes_fidelity(f), s["min_scaled_jacobian"])

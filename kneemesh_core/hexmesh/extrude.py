@@ -13,7 +13,8 @@
 4. Each node's column direction is chosen among blends of the bone normal
    and the domain ray to maximise the worst element around it
    (:mod:`.optimize`); where an element stays below 0.5, the column may be
-   shortened or lengthened by up to 20%.
+   shortened or lengthened by up to 20%, and at last its articular node may
+   step off the surface by up to a few tenths of a millimetre (untangling).
 5. ``layers`` element layers are interpolated linearly along each column.
 """
 
@@ -69,12 +70,14 @@ def _edge_ratio_guard(bone: np.ndarray, top: np.ndarray, quads: np.ndarray, laye
     The longest edge of an element can lie on its articular face (tilted or
     diverging columns stretch it), which the bone-side floor does not see.
     """
+    cap = 2.0 * np.linalg.norm(top - bone, axis=1) + 0.5  # never let a column run away
     for _ in range(3):
         ring_edges = np.concatenate([
             np.linalg.norm(bone[quads] - bone[np.roll(quads, -1, axis=1)], axis=2),
             np.linalg.norm(top[quads] - top[np.roll(quads, -1, axis=1)], axis=2)], axis=1).max(1)
         need = np.zeros(len(bone))
         np.maximum.at(need, quads.ravel(), np.repeat(layers * ring_edges / EDGE_RATIO_TARGET, 4))
+        need = np.minimum(need, cap)
         length = np.linalg.norm(top - bone, axis=1)
         short = length < need
         if not short.any():
@@ -83,12 +86,19 @@ def _edge_ratio_guard(bone: np.ndarray, top: np.ndarray, quads: np.ndarray, laye
     return top
 
 
-def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm) -> HexMesh:
-    """Hex mesh of the cartilage over the quad mesh ``qm``; ``tm`` is the surface's ray intersector."""
+def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, probe_mm: float = 0.0) -> HexMesh:
+    """Hex mesh of the cartilage over the quad mesh ``qm``; ``tm`` is the surface's ray intersector.
+
+    ``probe_mm``: contour nodes read their heights that far inside the contour,
+    where a folded rim makes the height field jump right on it (a fallback: it costs coverage).
+    """
     n = len(qm.points)
     quads = qm.quads
-    bone = domain.position(qm.points, fp.sample(fp.bone, qm.points))
-    ray_top = domain.position(qm.points, fp.sample(fp.joint, qm.points))
+    g = fp.gradient(qm.points)
+    inward = -g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
+    probe = np.where(qm.contour[:, None], qm.points + probe_mm * inward, qm.points)
+    bone = domain.position(qm.points, fp.sample(fp.bone, probe))
+    ray_top = domain.position(qm.points, fp.sample(fp.joint, probe))
     edges = quad_edges(quads)
 
     # bone-side normals (quads are counter-clockwise seen from the joint: normals point to the joint)
@@ -111,7 +121,8 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm) -> HexMesh:
     quad_longest = np.linalg.norm(bone[quads] - bone[np.roll(quads, -1, axis=1)], axis=2).max(1)
     longest = np.zeros(n)
     np.maximum.at(longest, quads.ravel(), np.repeat(quad_longest, 4))
-    floor = layers * longest / EDGE_RATIO_TARGET
+    # (capped: a stretched bone-side quad must not raise a column to absurd heights)
+    floor = np.minimum(layers * longest / EDGE_RATIO_TARGET, 2.0 * np.median(fallback))
     rim = node_ring <= 1
 
     def column(direction: np.ndarray) -> np.ndarray:
@@ -148,6 +159,11 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm) -> HexMesh:
     length_now = np.linalg.norm(top - bone, axis=1, keepdims=True)
     variants = [bone + unit(top - bone) * np.maximum(length_now * f, floor[:, None]) for f in (1.0, 0.9, 1.1, 0.8, 1.2)]
     top = choose_tops(bone, np.stack(variants), quads, good=0.5)
+    # untangling: where an element is still below 0.5, its articular nodes may step off the
+    # surface by fractions of a millimetre (a handful of nodes; the others stay on it)
+    for _ in range(3):
+        steps = [top] + [top + a * t for a in (0.2, -0.2, 0.1, -0.1, 0.05, -0.05) for t in (t1, t2, normal)]
+        top = choose_tops(bone, np.stack(steps), quads, good=0.5)
     top = _edge_ratio_guard(bone, top, quads, layers)
 
     frac = (np.arange(layers + 1) / layers)[:, None, None]
