@@ -136,7 +136,8 @@ def _attempt(labels: sitk.Image, tissue: str, opts: HexOptions, h: float):
     return hm, q, s, f, domain, cm, surface
 
 
-def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOptions()) -> CartilageMesh:
+def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOptions(),
+                   fallbacks: bool = True) -> CartilageMesh:
     """Hex mesh of one cartilage from canonical labels, trying the fallbacks until the gate passes.
 
     Raises
@@ -150,7 +151,7 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
     t0 = time.perf_counter()
     tried: list[str] = []
     best = None
-    for name, change in (("default", {}),) + FALLBACKS:
+    for name, change in (("default", {}),) + (FALLBACKS if fallbacks else ()):
         change = dict(change)
         factor = change.pop("element_size_factor", 1.0)
         o = dataclasses.replace(opts, **change)

@@ -70,7 +70,8 @@ def _edge_ratio_guard(bone: np.ndarray, top: np.ndarray, quads: np.ndarray, laye
     The longest edge of an element can lie on its articular face (tilted or
     diverging columns stretch it), which the bone-side floor does not see.
     """
-    cap = 2.0 * np.linalg.norm(top - bone, axis=1) + 0.5  # never let a column run away
+    start = np.linalg.norm(top - bone, axis=1)
+    cap = np.minimum(2.0 * start + 0.5, 2.0 * np.median(start))  # never let a column run away
     for _ in range(3):
         ring_edges = np.concatenate([
             np.linalg.norm(bone[quads] - bone[np.roll(quads, -1, axis=1)], axis=2),
@@ -131,7 +132,7 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, probe_mm: floa
         _, leave = crossings(tm, bone - eps * direction, direction)
         along = leave - eps
         ok = np.isfinite(along) & (along > 0.5 * fallback) & (along < 2.0 * fallback + 0.5)
-        thick = np.where(ok, along, fallback)
+        thick = np.minimum(np.where(ok, along, fallback), 1.5 * fallback + 0.3)
         for _ in range(3):
             thick = np.maximum(thick, floor)
             thick = np.where(rim, 0.5 * thick + 0.5 * _node_mean(thick, edges, n), thick)

@@ -50,7 +50,8 @@ def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction
                    min_hole: float = 1.0, smooth_mm: float = 1.0) -> Footprint:
     """Footprint of a height field.
 
-    Rays thinner than ``min_thickness`` mm, or than ``edge_fraction`` of the
+    Rays longer than three median thicknesses graze the cartilage sheet and
+    do not count either.  Rays thinner than ``min_thickness`` mm, or than ``edge_fraction`` of the
     median thickness, do not count: the rounded rim of a reconstructed
     cartilage tapers to nothing, and columns that thin make flat, sheared
     elements; the mesh edge is a short wall instead (blending slopes it later).
@@ -67,19 +68,27 @@ def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction
     step = hf.step
     px = step * step
     thick = np.where(hf.hit, hf.joint - hf.bone, 0.0)
+    max_thickness = np.inf
     if (thick > min_thickness).any():
-        min_thickness = max(min_thickness, edge_fraction * float(np.median(thick[thick > min_thickness])))
-    mask = hf.hit & (thick > min_thickness)
+        median = float(np.median(thick[thick > min_thickness]))
+        min_thickness = max(min_thickness, edge_fraction * median)
+        max_thickness = 3.0 * median  # a ray this long grazes the sheet: not a thickness
+    mask = hf.hit & (thick > min_thickness) & (thick < max_thickness)
     valid = hf.hit & (thick > 0)
     _, (ii, jj) = ndi.distance_transform_edt(~valid, return_indices=True)
     joint_filled = hf.joint[ii, jj]
     bone_filled = hf.bone[ii, jj]
     steep = np.zeros_like(mask)
+    jump = np.zeros_like(mask)
     for height in (joint_filled, bone_filled):
         gs, gt = np.gradient(height, step)
-        steep |= np.hypot(gs * s_scale, gt) > np.tan(np.deg2rad(max_slope_deg))
+        slope = np.hypot(gs * s_scale, gt)
+        steep |= slope > np.tan(np.deg2rad(max_slope_deg))
+        jump |= slope > np.tan(np.deg2rad(80.0))
     rim = ndi.binary_propagation(~mask, mask=~mask | steep)
-    mask &= ~rim
+    # where neighbouring rays jump between two sheets of cartilage (a fold seen from the
+    # axis), the footprint is cut: each sheet ends in its own edge instead of a bridge
+    mask &= ~rim & ~ndi.binary_dilation(jump, iterations=2)
     mask = remove_small_objects(mask, max_size=max(int(min_area / px), 1))
     mask = remove_small_holes(mask, max_size=max(int(min_hole / px), 1))
     if smooth_mm > 0:

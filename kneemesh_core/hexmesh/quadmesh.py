@@ -150,7 +150,7 @@ def quad_mesh(fp: Footprint, h: float, *, inset: float = 0.5) -> QuadMesh:
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     partner = pos + normal * _root_along(fp, pos, normal, 2.0 * h)[:, None]
     slot = {v: i for i, v in enumerate(bverts.tolist())}
-    partner, on_poly, polys = _spread_on_contour(fp, partner, bverts, nxt, slot, points)
+    partner, on_poly, polys = _spread_on_contour(fp, partner, bverts, nxt, slot, points, h)
 
     n0 = len(points)
     points = np.vstack([points, partner])
@@ -204,13 +204,14 @@ def _arc_point(poly: np.ndarray, u: np.ndarray) -> np.ndarray:
 
 
 def _spread_on_contour(fp: Footprint, partner: np.ndarray, bverts: np.ndarray, nxt: dict, slot: dict,
-                       points: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+                       points: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """Place each boundary loop's partners on its contour polyline in loop order.
 
-    Partners are spaced along the contour in proportion to the staircase edge
-    lengths, starting where they fit their first guesses best: ordered, never
-    crossing.  A loop that does not follow a single contour (it would need
-    partners on two of them) keeps its first guesses.
+    Each partner keeps its own arc-length place along the contour; the steps
+    between consecutive partners are smoothed and kept positive, so partners
+    follow the loop's order and never cross.  A loop that does not follow a
+    single contour (a partner would land more than 1.5 elements from its own
+    projection) keeps its projections.
     """
     polys = _contour_polylines(fp)
     on_poly = np.full(len(partner), -1)
@@ -234,24 +235,25 @@ def _spread_on_contour(fp: Footprint, partner: np.ndarray, bverts: np.ndarray, n
         length = float(np.linalg.norm(np.roll(poly, -1, axis=0) - poly, axis=1).sum())
         if np.percentile(dist, 90) > 0.5 * np.sqrt(fp.area_mm2()) or length <= 0:
             continue
-        steps = np.linalg.norm(points[np.roll(loop, -1)] - points[loop], axis=1)
-        frac = np.r_[0.0, np.cumsum(steps)[:-1]] / steps.sum()
         # the contour may run either way round; pick the direction the guesses follow
         du = np.mod(np.diff(np.r_[u, u[0]]), length)
         sign = 1.0 if np.median(du) < 0.5 * length else -1.0
-        target = sign * frac * length
-        offset = np.angle(np.mean(np.exp(1j * 2 * np.pi * (u - target) / length))) * length / (2 * np.pi)
-        # keep each partner near its own guess: smooth only the residual from even spacing,
-        # more and more until the partners follow the loop's order
-        resid = np.mod(u - (offset + target) + 0.5 * length, length) - 0.5 * length
-        spacing = length / len(loop)
-        for sigma in (1.0, 2.0, 4.0, 8.0, 16.0, np.inf):
-            smooth = np.full_like(resid, resid.mean()) if np.isinf(sigma) else ndi.gaussian_filter1d(resid, sigma, mode="wrap")
-            final = offset + target + smooth
-            if np.all(sign * np.diff(np.r_[final, final[0] + sign * length]) > 0.3 * spacing):
-                break
-        target = final - offset
-        partner[idx] = _arc_point(poly, offset + target)
+        # each partner keeps its own place along the contour; the steps between
+        # consecutive partners are smoothed and kept positive, so they follow the
+        # loop's order (a loop need not cover the whole polyline: a narrow neck)
+        steps = np.mod(sign * (np.roll(u, -1) - u) + 0.5 * length, length) - 0.5 * length
+        steps = np.maximum(ndi.gaussian_filter1d(steps, 1.0, mode="wrap"), 0.25 * h)
+        if steps.sum() > length:
+            steps *= length / steps.sum()
+        cum = np.r_[0.0, np.cumsum(steps)[:-1]]
+        shift = np.angle(np.mean(np.exp(1j * 2 * np.pi * (u - sign * cum) / length))) * length / (2 * np.pi)
+        final = shift + sign * cum
+        placed = _arc_point(poly, final)
+        # a loop that does not really follow this contour (it would send partners
+        # elsewhere along it) keeps its own projections
+        if np.linalg.norm(placed - guess, axis=1).max() > 1.5 * h:
+            continue
+        partner[idx] = placed
         on_poly[idx] = best
     return partner, on_poly, polys
 
