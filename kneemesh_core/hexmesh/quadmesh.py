@@ -209,9 +209,9 @@ def _spread_on_contour(fp: Footprint, partner: np.ndarray, bverts: np.ndarray, n
 
     Each partner keeps its own arc-length place along the contour; the steps
     between consecutive partners are smoothed and kept positive, so partners
-    follow the loop's order and never cross.  A loop that does not follow a
-    single contour (a partner would land more than 1.5 elements from its own
-    projection) keeps its projections.
+    follow the loop's order and never cross.  Where a loop does not follow the
+    contour (a partner would land more than 1.5 elements from its own
+    projection), that partner keeps its projection.
     """
     polys = _contour_polylines(fp)
     on_poly = np.full(len(partner), -1)
@@ -249,12 +249,11 @@ def _spread_on_contour(fp: Footprint, partner: np.ndarray, bverts: np.ndarray, n
         shift = np.angle(np.mean(np.exp(1j * 2 * np.pi * (u - sign * cum) / length))) * length / (2 * np.pi)
         final = shift + sign * cum
         placed = _arc_point(poly, final)
-        # a loop that does not really follow this contour (it would send partners
-        # elsewhere along it) keeps its own projections
-        if np.linalg.norm(placed - guess, axis=1).max() > 1.5 * h:
-            continue
-        partner[idx] = placed
-        on_poly[idx] = best
+        # where the contour is not this loop's (a partner would land more than 1.5
+        # elements from its own projection), that partner keeps its projection
+        near = np.linalg.norm(placed - guess, axis=1) <= 1.5 * h
+        partner[idx[near]] = placed[near]
+        on_poly[idx[near]] = best
     return partner, on_poly, polys
 
 
