@@ -12,8 +12,6 @@ from __future__ import annotations
 
 import argparse
 import glob
-import os
-import tempfile
 import time
 import warnings
 from collections import Counter, defaultdict

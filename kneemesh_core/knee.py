@@ -145,7 +145,7 @@ def canonicalise(
         plates=plates,
     )
     if merged is not None and merged.any():
-        if plates is None:  # a few voxels: give them all to the nearer plate by position
+        if plates is None:  # too few voxels to split: they all go to the +x plate
             plus = np.ones(int(merged.sum()), dtype=bool)
         else:
             plus = plates.plus_x

@@ -209,10 +209,9 @@ def _plausible(conv: LabelConvention, volumes: dict[int, float]) -> bool:
         return False
     # every present tissue label must have a plausible volume for its tissue
     for tissue, vals in conv.tissues.items():
-        ml = sum(volumes.get(v, 0.0) for v in vals[:1])  # the main value, not lesions
-        if vals[0] in present:
+        if vals[0] in present:  # the main value, not lesion labels
             lo, hi = _VOLUME_ML[tissue]
-            if not lo <= ml <= hi:
+            if not lo <= volumes[vals[0]] <= hi:
                 return False
     # the main tissues must be there (at least two cartilages or two bones)
     main = [t for t, vals in conv.tissues.items() if vals[0] in present]

@@ -9,7 +9,7 @@ import pytest
 import pyvista as pv
 
 from conftest import SAMPLE, real
-from kneemesh_core.hexmesh import HexOptions, mesh_cartilage
+from kneemesh_core.hexmesh import mesh_cartilage
 from kneemesh_core.hexmesh.optimize import scaled_jacobian
 from kneemesh_core.hexmesh.quality import hex_quality, passes_gate, to_grid
 from kneemesh_core.knee import load_knee

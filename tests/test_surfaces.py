@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from conftest import OAI, PYMSKT_LEFT, SAMPLE, mirror_lr, real
+from conftest import OAI, PYMSKT_LEFT, SAMPLE, real
 from kneemesh_core.io import voxel_to_lps, write_image
 from kneemesh_core.knee import load_knee
 from kneemesh_core.pipeline import JobOptions, run

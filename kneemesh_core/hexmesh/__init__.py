@@ -3,14 +3,16 @@
 The steps, one module each, in the order they run:
 
 1. :mod:`.domain` - a projection domain per tissue: a cylinder about the
-   condylar axis (femoral), a plane (each tibial plate, patella);
+   condylar axis (femoral) or the superior-inferior axis (patellar), a plane
+   (each tibial plate);
 2. :mod:`.rays` - Embree rays on a fine 2-D grid give the bone-side and
    articular heights of the reconstructed cartilage surface;
 3. :mod:`.footprint` - where the cartilage is: a cleaned, smoothed 2-D mask
    (holes kept) and its signed distance;
 4. :mod:`.quadmesh` - a regular quad lattice inside, a pillowed ring on the
    contour: boundary-conforming, no staircase, no collapsed elements;
-5. :mod:`.extrude` - nodes on both surfaces along each ray, layers between;
+5. :mod:`.extrude` (with :mod:`.optimize`) - bone-side nodes along each ray,
+   columns chosen to maximise the worst element, layers between;
 6. :mod:`.quality` and :mod:`.fidelity` - the gate, and how well the mesh
    represents the cartilage.
 
@@ -140,11 +142,14 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
                    fallbacks: bool = True) -> CartilageMesh:
     """Hex mesh of one cartilage from canonical labels, trying the fallbacks until the gate passes.
 
+    The best attempt is returned even when it misses the gate
+    (``facts["gate_passed"]`` says so); the caller decides what that means.
+
     Raises
     ------
     KneeMeshError
-        ``tissue_missing``/``bone_missing``, or ``quality_gate`` when no attempt
-        passes (the best attempt is attached as ``exc.best``).
+        ``tissue_missing``/``bone_missing``/``bad_option``, or ``meshing_failed``
+        when no attempt produced a mesh at all.
     """
     if opts.layers < 1 or not 0.2 <= opts.element_size <= 5:
         raise KneeMeshError("bad_option", "layers must be >= 1 and element size 0.2-5 mm.")
@@ -165,16 +170,15 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
         if abs(f["volume_error"]) > 0.5:  # a mesh half again off its cartilage is no mesh
             tried.append(f"{name} (volume off by {f['volume_error']:.0%})")
             continue
-        ok = passes_gate(s)
-        score = (ok, passes_fidelity(f), s["min_scaled_jacobian"])
+        score = (passes_gate(s), passes_fidelity(f), s["min_scaled_jacobian"])
         if best is None or score > best[0]:
             best = (score, hm, q, s, f, domain, cm, surface, name)
-        if ok and passes_fidelity(f):
+        if score[0] and score[1]:
             break
         tried.append(name)
     if best is None:
         raise KneeMeshError("meshing_failed", f"{tissue}: every attempt failed: {'; '.join(tried)}.")
-    _, hm, q, s, f, domain, cm, surface, name = best
+    (gate_ok, fidelity_ok, _), hm, q, s, f, domain, cm, surface, name = best
     facts = {
         "n_layers": opts.layers,
         "element_size_mm": round(float(np.median(_inplane_edges(hm))), 4),
@@ -184,8 +188,8 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
         "fallbacks": [] if name == "default" else [name],
         "attempts": tried + ([name] if name not in tried else []),
         "domain": domain.describe(),
-        "gate_passed": bool(passes_gate(s)),
-        "fidelity_passed": bool(passes_fidelity(f)),
+        "gate_passed": bool(gate_ok),
+        "fidelity_passed": bool(fidelity_ok),
         "mesh_seconds": round(time.perf_counter() - t0, 3),
     }
     return CartilageMesh(hm, q, facts, surface)

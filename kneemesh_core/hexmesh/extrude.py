@@ -6,10 +6,11 @@
    ray): columns stand perpendicular to the bone, so a plate inclined to the
    projection direction is not sheared.  Where that ray misses (the rim), the
    domain ray's articular height is used.
-3. At the rim the column keeps a minimum height, ``layers x longest adjacent
-   edge / 5``, so no element's edge ratio exceeds 5.5 (the reconstructed rim
-   tapers to nothing), and the thickness of the two outer rings is smoothed so
-   the articular surface does not drop over a single element.
+3. Every column keeps a minimum height, ``layers x longest adjacent edge /
+   5.8``, so no element's edge ratio exceeds 5.8 (the reconstructed rim tapers
+   to nothing; a final guard also checks the articular faces), and the
+   thickness of the two outer rings is smoothed so the articular surface does
+   not drop over a single element.
 4. Each node's column direction is chosen among blends of the bone normal
    and the domain ray to maximise the worst element around it
    (:mod:`.optimize`); where an element stays below 0.5, the column may be
@@ -55,6 +56,11 @@ class HexMesh:
     node_edge: np.ndarray
 
 
+def _unit(v: np.ndarray) -> np.ndarray:
+    """Rows of (N, 3) scaled to unit length."""
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+
+
 def _node_mean(values: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:
     """Mean of each node's neighbours' values over the edge graph."""
     acc = np.zeros((n,) + values.shape[1:])
@@ -95,8 +101,8 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, probe_mm: floa
     """
     n = len(qm.points)
     quads = qm.quads
-    g = fp.gradient(qm.points)
-    inward = -g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
+    inward = -fp.gradient(qm.points)
+    inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-12)
     probe = np.where(qm.contour[:, None], qm.points + probe_mm * inward, qm.points)
     bone = domain.position(qm.points, fp.sample(fp.bone, probe))
     ray_top = domain.position(qm.points, fp.sample(fp.joint, probe))
@@ -108,12 +114,12 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, probe_mm: floa
     normal = np.zeros((n, 3))
     np.add.at(normal, quads.ravel(), np.repeat(qn, 4, axis=0))
     for _ in range(3):
-        normal = 0.5 * normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+        normal = 0.5 * _unit(normal)
         normal = normal + _node_mean(normal, edges, n)
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    normal = _unit(normal)
 
     fallback = np.linalg.norm(ray_top - bone, axis=1)
-    ray_dir = (ray_top - bone) / np.maximum(fallback, 1e-12)[:, None]
+    ray_dir = _unit(ray_top - bone)
 
     # rim: a minimum column height for the edge ratio, and smoothing of the outer rings
     node_ring = np.full(n, np.iinfo(np.int64).max)
@@ -138,27 +144,22 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, probe_mm: floa
             thick = np.where(rim, 0.5 * thick + 0.5 * _node_mean(thick, edges, n), thick)
         return bone + direction * np.maximum(thick, floor)[:, None]
 
-    candidates = []
-    for w in (1.0, 0.75, 0.5, 0.25, 0.0):
-        d = w * normal + (1 - w) * ray_dir
-        candidates.append(column(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)))
+    candidates = [column(_unit(w * normal + (1 - w) * ray_dir)) for w in (1.0, 0.75, 0.5, 0.25, 0.0)]
     top = choose_tops(bone, np.stack(candidates), quads)
     # smoothing constrained to the articular surface: each column may take the mean
     # direction of its neighbours' columns, re-cast onto the surface
     # ... or tilt a little in any of four directions, re-cast onto the surface
-    t1 = np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t1 = _unit(np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
     t2 = np.cross(normal, t1)
-    unit = lambda v: v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)  # noqa: E731
     for _ in range(4):
-        d = unit(top - bone)
-        tries = [top, column(unit(d + _node_mean(d, edges, n)))]
-        tries += [column(unit(d + a * t)) for a in (0.15, -0.15) for t in (t1, t2)]
+        d = _unit(top - bone)
+        tries = [top, column(_unit(d + _node_mean(d, edges, n)))]
+        tries += [column(_unit(d + a * t)) for a in (0.15, -0.15) for t in (t1, t2)]
         top = choose_tops(bone, np.stack(tries), quads)
     # last resort where a column is still poor: a slightly shorter or taller column
     # (leaves the articular surface by a fraction of the local thickness, there only)
     length_now = np.linalg.norm(top - bone, axis=1, keepdims=True)
-    variants = [bone + unit(top - bone) * np.maximum(length_now * f, floor[:, None]) for f in (1.0, 0.9, 1.1, 0.8, 1.2)]
+    variants = [bone + _unit(top - bone) * np.maximum(length_now * f, floor[:, None]) for f in (1.0, 0.9, 1.1, 0.8, 1.2)]
     top = choose_tops(bone, np.stack(variants), quads, good=0.5)
     # untangling: where an element is still below 0.5, its articular nodes may step off the
     # surface by fractions of a millimetre (a handful of nodes; the others stay on it)

@@ -6,8 +6,9 @@
    (pinch) contacts and tiny islands are removed, so every boundary vertex has
    exactly one boundary edge in and one out.
 3. Every staircase boundary vertex gets a partner on the smoothed contour
-   (Newton steps on the signed distance, then tangential smoothing along the
-   loop so partners never fold), and every boundary edge a->b becomes the quad
+   (the signed distance's root along its outward normal, then placed along
+   the contour polyline in loop order so partners never cross), and every
+   boundary edge a->b becomes the quad
    (b, a, a', b'): the pillow ring.  No staircase, no collapsed quads, and
    holes (full-thickness defects) get their own ring facing inwards.
 4. Coordinate ascent on the worst quad around each node smooths the

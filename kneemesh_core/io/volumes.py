@@ -112,9 +112,6 @@ def _safe_extract(archive: Path, dest: Path) -> None:
 def _read_file(p: Path) -> tuple[sitk.Image, dict]:
     if p.stat().st_size == 0:
         raise KneeMeshError("not_an_image", f"{p.name}: the file is empty; expected a NIfTI, NRRD, MHA or DICOM volume.")
-    if _suffix(p) not in _IMAGE_SUFFIXES and not dicom.looks_like_dicom(p):
-        # Let ITK try its format detection, but fail with a clear message.
-        pass
     try:
         reader = sitk.ImageFileReader()
         reader.SetFileName(str(p))
