@@ -61,9 +61,11 @@ def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction
     Jacobian of 0.5 allows.
     ``s_scale`` converts an s-step into mm along the surface (cylinder: R0 / r).
     Islands smaller than
-    ``min_area`` mm^2 are dropped; holes smaller than ``min_hole`` mm^2 (ray
-    noise, not anatomy) are filled, larger ones (full-thickness defects) stay.
-    The contour is smoothed with a Gaussian of ``smooth_mm``.
+    ``min_area`` mm^2 are dropped; holes smaller than ``min_hole`` mm^2 are
+    filled, before and after the contour is smoothed with a Gaussian of
+    ``smooth_mm``: ray noise, or a pinhole smaller than the elements could
+    ring with a pillow (the caller passes about twice an element's area).
+    Larger holes (full-thickness defects) stay.
     """
     step = hf.step
     px = step * step
@@ -93,6 +95,7 @@ def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction
     mask = remove_small_holes(mask, max_size=max(int(min_hole / px), 1))
     if smooth_mm > 0:
         mask = ndi.gaussian_filter(mask.astype(np.float32), smooth_mm / step) > 0.5
+        mask = remove_small_holes(mask, max_size=max(int(min_hole / px), 1))
     inside_d = ndi.distance_transform_edt(mask) * step
     outside_d = ndi.distance_transform_edt(~mask) * step
     sdf = np.where(mask, -(inside_d - 0.5 * step), outside_d - 0.5 * step)

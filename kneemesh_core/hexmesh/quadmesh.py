@@ -88,6 +88,26 @@ def _clean_cells(cells: np.ndarray, min_cells: int = 4) -> np.ndarray:
     return cells
 
 
+def _fill_false_holes(cells: np.ndarray, fp: Footprint, origin: np.ndarray, h: float) -> np.ndarray:
+    """Fill the holes of the cell set that hold no contour (a thin spot of the signed distance,
+    not a defect): a pillow ring there would have no contour to reach, and fold.
+
+    ``cells`` (ni-1, nj-1) bool; ``origin`` (2,) parameter position of lattice node (0, 0).
+    """
+    lab, n = ndi.label(~cells)
+    border = np.unique(np.r_[lab[0], lab[-1], lab[:, 0], lab[:, -1]])
+    sub = (np.arange(5) + 0.5) / 5  # 5 x 5 samples per cell: the ray grid is h / 4
+    cells = cells.copy()
+    for k in np.setdiff1d(np.arange(1, n + 1), border):
+        ci, cj = np.nonzero(lab == k)
+        s = origin[0] + h * (ci[:, None, None] + sub[None, :, None])
+        t = origin[1] + h * (cj[:, None, None] + sub[None, None, :])
+        st = np.stack(np.broadcast_arrays(s, t), -1).reshape(-1, 2)
+        if (fp.sample(fp.sdf, st) < 0).all():
+            cells[lab == k] = True
+    return cells
+
+
 def _root_along(fp: Footprint, p: np.ndarray, d: np.ndarray, reach: float, back: bool = False,
                 iterations: int = 20) -> np.ndarray:
     """Signed step t along directions d (N, 2) from points p (N, 2) to the contour, by bisection.
@@ -120,7 +140,7 @@ def quad_mesh(fp: Footprint, h: float, *, inset: float = 0.5) -> QuadMesh:
     node_sdf = fp.sample(fp.sdf, lattice.reshape(-1, 2)).reshape(ni, nj)
     deep = node_sdf <= -inset * h
     cells = deep[:-1, :-1] & deep[1:, :-1] & deep[1:, 1:] & deep[:-1, 1:]
-    cells = _clean_cells(cells)
+    cells = _clean_cells(_fill_false_holes(cells, fp, lattice[0, 0], h))
     if not cells.any():
         raise ValueError("the footprint holds no complete element")
 
@@ -151,7 +171,7 @@ def quad_mesh(fp: Footprint, h: float, *, inset: float = 0.5) -> QuadMesh:
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     partner = pos + normal * _root_along(fp, pos, normal, 2.0 * h)[:, None]
     slot = {v: i for i, v in enumerate(bverts.tolist())}
-    partner, on_poly, polys = _spread_on_contour(fp, partner, bverts, nxt, slot, points, h)
+    partner, on_poly, polys = _spread_on_contour(fp, partner, bverts, nxt, slot, h)
 
     n0 = len(points)
     points = np.vstack([points, partner])
@@ -204,21 +224,87 @@ def _arc_point(poly: np.ndarray, u: np.ndarray) -> np.ndarray:
     return poly[k] + ((u - cum[k]) / np.maximum(seg_len[k], 1e-12))[:, None] * seg[k]
 
 
-def _spread_on_contour(fp: Footprint, partner: np.ndarray, bverts: np.ndarray, nxt: dict, slot: dict,
-                       points: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-    """Place each boundary loop's partners on its contour polyline in loop order.
+def _match_along(poly: np.ndarray, guess: np.ndarray, min_step: float, closed: bool) -> tuple[np.ndarray, float]:
+    """Arc lengths (m,) on a closed polyline (M, 2) for the guesses (m, 2) of a loop (``closed``)
+    or of a run of one, in order.
 
-    Each partner keeps its own arc-length place along the contour; the steps
-    between consecutive partners are smoothed and kept positive, so partners
-    follow the loop's order and never cross.  Where a loop does not follow the
-    contour (a partner would land more than 1.5 elements from its own
-    projection), that partner keeps its projection.
+    A monotone matching by dynamic programming: consecutive guesses take
+    points at least ``min_step`` mm further along the contour, and the sum of
+    squared distances from the guesses is the least.  A closed loop goes once
+    round; a run takes any stretch of the contour.  Returns the arc lengths
+    and the root-mean-square distance.  (Hand-written: no library matches an
+    ordered point sequence to a closed curve under an order constraint.)
+    """
+    seg_len = np.linalg.norm(np.roll(poly, -1, axis=0) - poly, axis=1)
+    length = float(seg_len.sum())
+    delta = min(min_step / 2.0, length / (4 * len(guess)))
+    u = np.arange(0.0, length, delta)
+    samples = _arc_point(poly, u)
+    d2 = ((guess[:, None, :] - samples[None]) ** 2).sum(-1)  # (m, M)
+    m, n = d2.shape
+    # anchor: a closed loop starts at the guess closest to the contour, on its closest sample;
+    # a run is centred on its middle guess's closest sample (it may cross the polyline's seam)
+    a = int(np.argmin(d2.min(1))) if closed else 0
+    j0 = int(np.argmin(d2[a])) if closed else (int(np.argmin(d2[m // 2])) - n // 2) % n
+    d2 = np.roll(np.roll(d2, -a, axis=0), -j0, axis=1)
+    s = max(int(round(min_step / delta)), 1)
+    if m * s > n:
+        s = max(n // m, 1)
+    if closed:
+        cost = np.full(n, np.inf)
+        cost[0] = d2[0, 0]
+    else:
+        cost = d2[0].copy()
+    back = np.zeros((m, n), dtype=np.int64)
+    cols = np.arange(n)
+    for i in range(1, m):
+        prefix = np.minimum.accumulate(cost)
+        arg = np.maximum.accumulate(np.where(cost == prefix, cols, 0))
+        new = np.full(n, np.inf)
+        new[s:] = d2[i, s:] + prefix[:-s]
+        back[i, s:] = arg[:-s]
+        cost = new
+    if closed:
+        cost[n - s + 1:] = np.inf  # the last guess stays a step before the anchor (the loop closes)
+    j = int(np.argmin(cost))
+    total = cost[j]
+    idx = np.empty(m, dtype=np.int64)
+    for i in range(m - 1, -1, -1):
+        idx[i] = j
+        j = back[i, j]
+    arc = u[(idx + j0) % n]
+    return np.roll(arc, a), float(np.sqrt(total / m))
+
+
+def _runs(labels: np.ndarray) -> list[np.ndarray]:
+    """Index runs (cyclic) of equal consecutive labels (m,) of a loop."""
+    m = len(labels)
+    change = np.flatnonzero(labels != np.roll(labels, 1))
+    if not len(change):
+        return [np.arange(m)]
+    return [np.arange(a, a + (b - a) % m or m) % m for a, b in zip(change, np.roll(change, -1))]
+
+
+def _spread_on_contour(fp: Footprint, partner: np.ndarray, bverts: np.ndarray, nxt: dict, slot: dict,
+                       h: float) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Place each boundary loop's partners on the contour polylines in loop order.
+
+    Each first guess (``partner``, N x 2) belongs to its nearest contour
+    polyline (a majority vote along the loop settles flickers).  A loop that
+    follows one polyline is matched to it whole; a loop that follows several
+    (where a narrow neck between a hole and the outer edge dropped the cells
+    between them) is matched run by run.  :func:`_match_along` keeps the
+    partners in the loop's order and at least a quarter element apart, so
+    pillow quads cannot fold over one another.  Returns the partners, the
+    index of each one's polyline (-1: left at its guess), and the polylines,
+    oriented the way their loops run.
     """
     polys = _contour_polylines(fp)
     on_poly = np.full(len(partner), -1)
     if not polys:
         return partner, on_poly, polys
     partner = partner.copy()
+    oriented: dict[int, int] = {}
     seen: set[int] = set()
     for start in bverts.tolist():
         if start in seen:
@@ -229,32 +315,29 @@ def _spread_on_contour(fp: Footprint, partner: np.ndarray, bverts: np.ndarray, n
         seen.update(loop)
         idx = np.array([slot[v] for v in loop])
         guess = partner[idx]
-        fits = [_arc_project(poly, guess) for poly in polys]
-        best = int(np.argmin([np.median(d) for _, d in fits]))
-        u, dist = fits[best]
-        poly = polys[best]
-        length = float(np.linalg.norm(np.roll(poly, -1, axis=0) - poly, axis=1).sum())
-        if np.percentile(dist, 90) > 0.5 * np.sqrt(fp.area_mm2()) or length <= 0:
-            continue
-        # the contour may run either way round; pick the direction the guesses follow
-        du = np.mod(np.diff(np.r_[u, u[0]]), length)
-        sign = 1.0 if np.median(du) < 0.5 * length else -1.0
-        # each partner keeps its own place along the contour; the steps between
-        # consecutive partners are smoothed and kept positive, so they follow the
-        # loop's order (a loop need not cover the whole polyline: a narrow neck)
-        steps = np.mod(sign * (np.roll(u, -1) - u) + 0.5 * length, length) - 0.5 * length
-        steps = np.maximum(ndi.gaussian_filter1d(steps, 1.0, mode="wrap"), 0.25 * h)
-        if steps.sum() > length:
-            steps *= length / steps.sum()
-        cum = np.r_[0.0, np.cumsum(steps)[:-1]]
-        shift = np.angle(np.mean(np.exp(1j * 2 * np.pi * (u - sign * cum) / length))) * length / (2 * np.pi)
-        final = shift + sign * cum
-        placed = _arc_point(poly, final)
-        # where the contour is not this loop's (a partner would land more than 1.5
-        # elements from its own projection), that partner keeps its projection
-        near = np.linalg.norm(placed - guess, axis=1) <= 1.5 * h
-        partner[idx[near]] = placed[near]
-        on_poly[idx[near]] = best
+        dist = np.stack([_arc_project(poly, guess)[1] for poly in polys])  # (K, m)
+        label = np.argmin(dist, axis=0)
+        if len(polys) > 1 and len(label) >= 5:
+            votes = np.stack([ndi.convolve1d((label == k).astype(float), np.ones(5), mode="wrap")
+                              for k in range(len(polys))])
+            label = np.argmax(votes, axis=0)
+        runs = _runs(label)
+        for run in runs:
+            k = int(label[run[0]])
+            if np.median(dist[k, run]) > 2.0 * h or (len(runs) > 1 and len(run) < 2):
+                continue
+            closed = len(runs) == 1
+            if k in oriented:
+                choices = [oriented[k]]
+            else:
+                choices = [1, -1]
+            fits = {o: _match_along(polys[k][::o], guess[run], 0.25 * h, closed) for o in choices}
+            o = min(fits, key=lambda c: fits[c][1])
+            if k not in oriented and o == -1:
+                polys[k] = np.ascontiguousarray(polys[k][::-1])
+            oriented[k] = 1
+            partner[idx[run]] = _arc_point(polys[k], fits[o][0])
+            on_poly[idx[run]] = k
     return partner, on_poly, polys
 
 
