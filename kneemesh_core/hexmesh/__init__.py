@@ -129,9 +129,9 @@ def _attempt(labels: sitk.Image, tissue: str, opts: HexOptions, h: float):
     hf = height_field(surface, domain, domain.to_2d(pts), step=h * opts.ray_step_fraction)
     s_scale = domain.radius / np.maximum(np.nan_to_num(hf.joint, nan=domain.radius), 1.0) if isinstance(domain, CylinderDomain) else 1.0
     fp = find_footprint(hf, min_thickness=opts.min_thickness, edge_fraction=opts.edge_fraction,
-                        max_slope_deg=opts.max_slope_deg, s_scale=s_scale)
+                        max_slope_deg=opts.max_slope_deg, s_scale=s_scale, min_hole=2.0 * h * h)
     qm = quad_mesh(fp, h, inset=opts.inset)
-    hm = extrude(qm, fp, domain, opts.layers, intersector(surface), probe_mm=opts.probe_inset * h)
+    hm = extrude(qm, fp, domain, opts.layers, intersector(surface), h, probe_mm=opts.probe_inset * h)
     q = hex_quality(hm.points, hm.hexes)
     s = summary(q, hm.ring)
     f = fidelity(hm, surface, cm.label_ml)

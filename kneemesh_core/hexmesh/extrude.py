@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kneemesh_core.hexmesh.footprint import Footprint
-from kneemesh_core.hexmesh.optimize import choose_tops
+from kneemesh_core.hexmesh.optimize import choose_columns, choose_tops
 from kneemesh_core.hexmesh.quadmesh import QuadMesh, quad_edges
 from kneemesh_core.hexmesh.rays import crossings
 
@@ -93,8 +93,19 @@ def _edge_ratio_guard(bone: np.ndarray, top: np.ndarray, quads: np.ndarray, laye
     return top
 
 
-def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, probe_mm: float = 0.0) -> HexMesh:
-    """Hex mesh of the cartilage over the quad mesh ``qm``; ``tm`` is the surface's ray intersector.
+def _onto_contour(fp: Footprint, st: np.ndarray, on: np.ndarray) -> np.ndarray:
+    """Parameter points (N, 2), those flagged ``on`` moved back onto the contour (Newton steps
+    on the signed distance)."""
+    st = st.copy()
+    for _ in range(2):
+        g = fp.gradient(st[on])
+        st[on] -= (fp.sample(fp.sdf, st[on]) / np.maximum((g * g).sum(1), 1e-6))[:, None] * g
+    return st
+
+
+def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, h_mm: float, probe_mm: float = 0.0) -> HexMesh:
+    """Hex mesh of the cartilage over the quad mesh ``qm`` of element size ``h_mm``; ``tm`` is the
+    surface's ray intersector.
 
     ``probe_mm``: contour nodes read their heights that far inside the contour,
     where a folded rim makes the height field jump right on it (a fallback: it costs coverage).
@@ -153,7 +164,7 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, probe_mm: floa
     t2 = np.cross(normal, t1)
     for _ in range(4):
         d = _unit(top - bone)
-        tries = [top, column(_unit(d + _node_mean(d, edges, n)))]
+        tries = [top, column(_unit(d + _node_mean(d, edges, n))), column(_unit(_node_mean(top, edges, n) - bone))]
         tries += [column(_unit(d + a * t)) for a in (0.15, -0.15) for t in (t1, t2)]
         top = choose_tops(bone, np.stack(tries), quads)
     # last resort where a column is still poor: a slightly shorter or taller column
@@ -161,11 +172,25 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, probe_mm: floa
     length_now = np.linalg.norm(top - bone, axis=1, keepdims=True)
     variants = [bone + _unit(top - bone) * np.maximum(length_now * f, floor[:, None]) for f in (1.0, 0.9, 1.1, 0.8, 1.2)]
     top = choose_tops(bone, np.stack(variants), quads, good=0.5)
-    # untangling: where an element is still below 0.5, its articular nodes may step off the
-    # surface by fractions of a millimetre (a handful of nodes; the others stay on it)
-    for _ in range(3):
-        steps = [top] + [top + a * t for a in (0.2, -0.2, 0.1, -0.1, 0.05, -0.05) for t in (t1, t2, normal)]
-        top = choose_tops(bone, np.stack(steps), quads, good=0.5)
+    # untangling where an element is still below 0.5 (a handful of nodes; the others stay put):
+    # an articular node may step off the surface by fractions of a millimetre, or a bone-side
+    # node slide along the bone surface (contour nodes along the contour), its column carried along
+    u = qm.points.copy()
+    plane_dirs = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [0.7, 0.7], [-0.7, 0.7], [0.7, -0.7], [-0.7, -0.7]])
+    for _ in range(4):
+        col = top - bone
+        length = np.linalg.norm(col, axis=1, keepdims=True)
+        tops = [top, _node_mean(top, edges, n), bone + _unit(_node_mean(_unit(col), edges, n)) * length]
+        tops += [top + a * t for a in (0.4, -0.4, 0.2, -0.2, 0.1, -0.1, 0.05, -0.05) for t in (t1, t2, normal)]
+        slides = [_onto_contour(fp, u + a * h_mm * d, qm.contour) for a in (0.3, 0.12) for d in plane_dirs]
+        lifted = [domain.position(v, fp.sample(fp.bone, np.where(qm.contour[:, None], v + probe_mm * inward, v)))
+                  for v in slides]
+        bottoms = np.stack([bone] * len(tops) + lifted)
+        k = choose_columns(bottoms, np.stack(tops + [b + (top - bone) for b in lifted]), quads, good=0.5)
+        at = np.arange(n)
+        slid = k >= len(tops)
+        u[slid] = np.stack(slides)[k[slid] - len(tops), at[slid]]
+        top, bone = np.stack(tops + [b + (top - bone) for b in lifted])[k, at], bottoms[k, at]
     top = _edge_ratio_guard(bone, top, quads, layers)
 
     frac = (np.arange(layers + 1) / layers)[:, None, None]

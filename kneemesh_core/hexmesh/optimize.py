@@ -52,6 +52,19 @@ def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, s
                 good: float = 0.7) -> np.ndarray:
     """Per node, the candidate top position (of K) that maximises the worst adjacent :func:`column_score`.
 
+    ``bottom`` (P, 3) bone-side nodes held still; ``candidates`` (K, P, 3)
+    articular nodes, candidate 0 the start.  Returns the chosen (P, 3); see
+    :func:`choose_columns`.
+    """
+    bottoms = np.broadcast_to(bottom, candidates.shape)
+    k = choose_columns(bottoms, candidates, quads, sweeps, good)
+    return candidates[k, np.arange(len(bottom))]
+
+
+def choose_columns(bottoms: np.ndarray, tops: np.ndarray, quads: np.ndarray, sweeps: int = 8,
+                   good: float = 0.7) -> np.ndarray:
+    """Per node, the candidate column (of K) that maximises the worst adjacent :func:`column_score`.
+
     Coordinate ascent: each sweep scores every candidate of every node with its
     neighbours held where they are, then moves an independent set of the nodes
     that gain (no two sharing an element), largest gain first.  The worst
@@ -59,24 +72,20 @@ def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, s
 
     Parameters
     ----------
-    bottom : (P, 3) bone-side nodes.
-    candidates : (K, P, 3) candidate articular nodes; candidate 0 is the start.
+    bottoms, tops : (K, P, 3) candidate bone-side and articular nodes; candidate 0 is the start.
     quads : (Q, 4) the quad mesh, counter-clockwise seen from the joint.
     good : nodes whose surrounding columns all reach this are left alone.
 
     Returns
     -------
-    (P, 3) chosen articular nodes.
+    (P,) index of the chosen candidate per node.
     """
-    n = len(bottom)
-    top = candidates[0].copy()
+    n = bottoms.shape[1]
+    bottom, top = bottoms[0].copy(), tops[0].copy()
     choice = np.zeros(n, dtype=int)
 
-    def columns(tops: np.ndarray) -> np.ndarray:
-        return np.concatenate([bottom[quads], tops[quads]], axis=1)  # (Q, 8, 3)
-
     for _ in range(sweeps):
-        cols = columns(top)
+        cols = np.concatenate([bottom[quads], top[quads]], axis=1)  # (Q, 8, 3)
         current = np.full(n, np.inf)
         np.minimum.at(current, quads.ravel(), np.repeat(column_score(cols), 4))
         todo = current < good
@@ -85,11 +94,12 @@ def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, s
         best, best_k = current.copy(), choice.copy()
         active = np.flatnonzero(todo[quads].any(1))  # only columns around nodes being improved
         aq, acols = quads[active], cols[active]
-        for k in range(len(candidates)):
+        for k in range(len(tops)):
             score = np.full(n, np.inf)
             for slot in range(4):
                 trial = acols.copy()
-                trial[:, 4 + slot] = candidates[k][aq[:, slot]]
+                trial[:, slot] = bottoms[k][aq[:, slot]]
+                trial[:, 4 + slot] = tops[k][aq[:, slot]]
                 np.minimum.at(score, aq[:, slot], column_score(trial))
             better = todo & (score > best + 1e-6)
             best[better], best_k[better] = score[better], k
@@ -104,5 +114,7 @@ def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, s
         np.maximum.at(around, quads.ravel(), np.repeat(elem_max, 4))
         move = (gain > 0) & (key >= around)
         choice[move] = best_k[move]
-        top[move] = candidates[best_k[move], np.flatnonzero(move)]
-    return top
+        idx = np.flatnonzero(move)
+        bottom[move] = bottoms[best_k[move], idx]
+        top[move] = tops[best_k[move], idx]
+    return choice
