@@ -135,7 +135,7 @@ def _attempt(labels: sitk.Image, tissue: str, opts: HexOptions, h: float):
     q = hex_quality(hm.points, hm.hexes)
     s = summary(q, hm.ring)
     f = fidelity(hm, surface, cm.label_ml)
-    return hm, q, s, f, domain, cm, surface
+    return hm, q, s, f, domain, cm, surface, fp
 
 
 def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOptions(),
@@ -161,7 +161,7 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
         factor = change.pop("element_size_factor", 1.0)
         o = dataclasses.replace(opts, **change)
         try:
-            hm, q, s, f, domain, cm, surface = _attempt(labels, tissue, o, opts.element_size * factor)
+            hm, q, s, f, domain, cm, surface, fp = _attempt(labels, tissue, o, opts.element_size * factor)
         except KneeMeshError:
             raise
         except Exception as exc:  # a geometric failure: record it and fall back
@@ -172,19 +172,20 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
             continue
         score = (passes_gate(s), passes_fidelity(f), s["min_scaled_jacobian"])
         if best is None or score > best[0]:
-            best = (score, hm, q, s, f, domain, cm, surface, name)
+            best = (score, hm, q, s, f, domain, cm, surface, fp, name)
         if score[0] and score[1]:
             break
         tried.append(name)
     if best is None:
         raise KneeMeshError("meshing_failed", f"{tissue}: every attempt failed: {'; '.join(tried)}.")
-    (gate_ok, fidelity_ok, _), hm, q, s, f, domain, cm, surface, name = best
+    (gate_ok, fidelity_ok, _), hm, q, s, f, domain, cm, surface, fp, name = best
     facts = {
         "n_layers": opts.layers,
         "element_size_mm": round(float(np.median(_inplane_edges(hm))), 4),
         **s,
         **f,
         "discarded_ml": round(cm.discarded_ml, 4),
+        "defect_holes": fp.holes(),
         "fallbacks": [] if name == "default" else [name],
         "attempts": tried + ([name] if name not in tried else []),
         "domain": domain.describe(),

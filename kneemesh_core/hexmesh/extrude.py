@@ -156,7 +156,7 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, h_mm: float, p
         return bone + direction * np.maximum(thick, floor)[:, None]
 
     candidates = [column(_unit(w * normal + (1 - w) * ray_dir)) for w in (1.0, 0.75, 0.5, 0.25, 0.0)]
-    top = choose_tops(bone, np.stack(candidates), quads)
+    top = choose_tops(bone, np.stack(candidates), quads, layers)
     # smoothing constrained to the articular surface: each column may take the mean
     # direction of its neighbours' columns, re-cast onto the surface
     # ... or tilt a little in any of four directions, re-cast onto the surface
@@ -166,18 +166,18 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, h_mm: float, p
         d = _unit(top - bone)
         tries = [top, column(_unit(d + _node_mean(d, edges, n))), column(_unit(_node_mean(top, edges, n) - bone))]
         tries += [column(_unit(d + a * t)) for a in (0.15, -0.15) for t in (t1, t2)]
-        top = choose_tops(bone, np.stack(tries), quads)
+        top = choose_tops(bone, np.stack(tries), quads, layers)
     # last resort where a column is still poor: a slightly shorter or taller column
     # (leaves the articular surface by a fraction of the local thickness, there only)
     length_now = np.linalg.norm(top - bone, axis=1, keepdims=True)
     variants = [bone + _unit(top - bone) * np.maximum(length_now * f, floor[:, None]) for f in (1.0, 0.9, 1.1, 0.8, 1.2)]
-    top = choose_tops(bone, np.stack(variants), quads, good=0.5)
+    top = choose_tops(bone, np.stack(variants), quads, layers, good=0.5)
     # untangling where an element is still below 0.5 (a handful of nodes; the others stay put):
     # an articular node may step off the surface by fractions of a millimetre, or a bone-side
     # node slide along the bone surface (contour nodes along the contour), its column carried along
     u = qm.points.copy()
     plane_dirs = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [0.7, 0.7], [-0.7, 0.7], [0.7, -0.7], [-0.7, -0.7]])
-    for _ in range(4):
+    for _ in range(8):
         col = top - bone
         length = np.linalg.norm(col, axis=1, keepdims=True)
         tops = [top, _node_mean(top, edges, n), bone + _unit(_node_mean(_unit(col), edges, n)) * length]
@@ -186,7 +186,7 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, h_mm: float, p
         lifted = [domain.position(v, fp.sample(fp.bone, np.where(qm.contour[:, None], v + probe_mm * inward, v)))
                   for v in slides]
         bottoms = np.stack([bone] * len(tops) + lifted)
-        k = choose_columns(bottoms, np.stack(tops + [b + (top - bone) for b in lifted]), quads, good=0.5)
+        k = choose_columns(bottoms, np.stack(tops + [b + (top - bone) for b in lifted]), quads, layers, good=0.5)
         at = np.arange(n)
         slid = k >= len(tops)
         u[slid] = np.stack(slides)[k[slid] - len(tops), at[slid]]

@@ -41,6 +41,12 @@ class Footprint:
         g = np.gradient(self.sdf, self.grid.step)
         return np.stack([self.sample(g[0], st), self.sample(g[1], st)], -1)
 
+    def holes(self) -> int:
+        """Holes in the footprint (full-thickness defects the mesh keeps open)."""
+        lab, n = ndi.label(~self.inside)
+        border = np.unique(np.r_[lab[0], lab[-1], lab[:, 0], lab[:, -1]])
+        return int(n - np.count_nonzero(border))
+
     def area_mm2(self) -> float:
         return float(self.inside.sum() * self.grid.step**2)
 
