@@ -36,7 +36,7 @@ from kneemesh_core.hexmesh.fidelity import fidelity, passes_fidelity
 from kneemesh_core.hexmesh.footprint import find_footprint
 from kneemesh_core.hexmesh.quadmesh import quad_mesh
 from kneemesh_core.hexmesh.quality import hex_quality, passes_gate, summary, to_grid
-from kneemesh_core.hexmesh.rays import height_field, intersector
+from kneemesh_core.hexmesh.rays import height_field
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.surfaces.isosurface import mask_surface
 from kneemesh_core.surfaces.masks import clean_mask
@@ -56,14 +56,15 @@ class HexOptions:
     ray_step_fraction: float = 0.25  # ray grid spacing as a fraction of the element size
     inset: float = 0.5  # lattice cells sit this many elements inside the contour
     min_thickness: float = 0.2
-    edge_fraction: float = 0.35  # the contour runs where thickness is this fraction of the median
-    max_slope_deg: float = 55.0  # or where the rim rolls over steeper than this
+    edge_fraction: float = 0.2  # the contour runs where thickness is this fraction of the median
+    max_slope_deg: float = 65.0  # or where the rim rolls over steeper than this
     pass_band: float = 0.02  # windowed-sinc smoothing of the cartilage surface (smaller: smoother)
     probe_inset: float = 0.0  # contour nodes read heights this many elements inside (folded rims)
 
 
 #: The fallback chain: each entry changes some options; the first that passes the gate wins.
 FALLBACKS: tuple[tuple[str, dict], ...] = (
+    ("trimmed_rim", {"edge_fraction": 0.35, "max_slope_deg": 55.0}),  # less coverage, squarer rim elements
     ("rim_heights_inside", {"probe_inset": 0.3}),
     ("smoother_surface", {"pass_band": 0.01}),
     ("finer_rays", {"ray_step_fraction": 0.125}),
@@ -131,7 +132,7 @@ def _attempt(labels: sitk.Image, tissue: str, opts: HexOptions, h: float):
     fp = find_footprint(hf, min_thickness=opts.min_thickness, edge_fraction=opts.edge_fraction,
                         max_slope_deg=opts.max_slope_deg, s_scale=s_scale, min_hole=2.0 * h * h)
     qm = quad_mesh(fp, h, inset=opts.inset)
-    hm = extrude(qm, fp, domain, opts.layers, intersector(surface), h, probe_mm=opts.probe_inset * h)
+    hm = extrude(qm, fp, domain, opts.layers, surface, h, probe_mm=opts.probe_inset * h)
     q = hex_quality(hm.points, hm.hexes)
     s = summary(q, hm.ring)
     f = fidelity(hm, surface, cm.label_ml)

@@ -24,11 +24,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import pyvista as pv
 
 from kneemesh_core.hexmesh.footprint import Footprint
-from kneemesh_core.hexmesh.optimize import choose_columns, choose_tops
+from kneemesh_core.hexmesh.optimize import choose_columns, choose_tops, settle
 from kneemesh_core.hexmesh.quadmesh import QuadMesh, quad_edges
-from kneemesh_core.hexmesh.rays import crossings
+from kneemesh_core.hexmesh.rays import crossings, intersector
 
 #: Largest edge ratio the rim columns are built for.
 EDGE_RATIO_TARGET = 5.8
@@ -103,15 +104,17 @@ def _onto_contour(fp: Footprint, st: np.ndarray, on: np.ndarray) -> np.ndarray:
     return st
 
 
-def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, h_mm: float, probe_mm: float = 0.0) -> HexMesh:
-    """Hex mesh of the cartilage over the quad mesh ``qm`` of element size ``h_mm``; ``tm`` is the
-    surface's ray intersector.
+def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyData, h_mm: float,
+            probe_mm: float = 0.0) -> HexMesh:
+    """Hex mesh of the cartilage over the quad mesh ``qm`` of element size ``h_mm``, between the
+    bone-side and articular sides of the reconstructed cartilage ``surface``.
 
     ``probe_mm``: contour nodes read their heights that far inside the contour,
     where a folded rim makes the height field jump right on it (a fallback: it costs coverage).
     """
     n = len(qm.points)
     quads = qm.quads
+    tm = intersector(surface)
     inward = -fp.gradient(qm.points)
     inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-12)
     probe = np.where(qm.contour[:, None], qm.points + probe_mm * inward, qm.points)
@@ -192,6 +195,10 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, tm, h_mm: float, p
         u[slid] = np.stack(slides)[k[slid] - len(tops), at[slid]]
         top, bone = np.stack(tops + [b + (top - bone) for b in lifted])[k, at], bottoms[k, at]
     top = _edge_ratio_guard(bone, top, quads, layers)
+    # articular nodes the rim floor or the untangling lifted off the surface go back onto it
+    # wherever the elements around them stay good
+    _, closest = surface.find_closest_cell(top, return_closest_point=True)
+    top = settle(bone, top, closest, quads, layers)
 
     frac = (np.arange(layers + 1) / layers)[:, None, None]
     points = (bone[None] + (top - bone)[None] * frac).reshape(-1, 3)

@@ -93,6 +93,37 @@ def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, l
     return candidates[k, np.arange(len(bottom))]
 
 
+def _node_min(values: np.ndarray, quads: np.ndarray, n: int) -> np.ndarray:
+    """Per node (n,), the least of the values (Q,) of the quads around it."""
+    out = np.full(n, np.inf)
+    np.minimum.at(out, quads.ravel(), np.repeat(values, 4))
+    return out
+
+
+def _score_moves(cols: np.ndarray, quads: np.ndarray, active: np.ndarray, bottom: np.ndarray, top: np.ndarray,
+                 n: int, layers: int) -> np.ndarray:
+    """Per node (n,), the worst :func:`column_score` around it if it alone moved to (bottom, top) (P, 3);
+    only the columns ``active`` are scored (inf elsewhere)."""
+    aq, acols = quads[active], cols[active]
+    score = np.full(n, np.inf)
+    for slot in range(4):
+        trial = acols.copy()
+        trial[:, slot] = bottom[aq[:, slot]]
+        trial[:, 4 + slot] = top[aq[:, slot]]
+        np.minimum.at(score, aq[:, slot], column_score(trial, layers))
+    return score
+
+
+def _independent(gain: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """Nodes with a positive gain that is the largest among all nodes sharing a quad with them
+    (ties to the lower index): no two of them share an element, so their moves can be applied together."""
+    n = len(gain)
+    key = gain + 1e-9 * (n - np.arange(n)) / n
+    around = np.full(n, -np.inf)
+    np.maximum.at(around, quads.ravel(), np.repeat(key[quads].max(1), 4))
+    return (gain > 0) & (key >= around)
+
+
 def choose_columns(bottoms: np.ndarray, tops: np.ndarray, quads: np.ndarray, layers: int = 1, sweeps: int = 8,
                    good: float = 0.7) -> np.ndarray:
     """Per node, the candidate column (of K) that maximises the worst adjacent :func:`column_score`.
@@ -116,38 +147,55 @@ def choose_columns(bottoms: np.ndarray, tops: np.ndarray, quads: np.ndarray, lay
     n = bottoms.shape[1]
     bottom, top = bottoms[0].copy(), tops[0].copy()
     choice = np.zeros(n, dtype=int)
-
     for _ in range(sweeps):
         cols = np.concatenate([bottom[quads], top[quads]], axis=1)  # (Q, 8, 3)
-        current = np.full(n, np.inf)
-        np.minimum.at(current, quads.ravel(), np.repeat(column_score(cols, layers), 4))
+        current = _node_min(column_score(cols, layers), quads, n)
         todo = current < good
         if not todo.any():
             break
         best, best_k = current.copy(), choice.copy()
         active = np.flatnonzero(todo[quads].any(1))  # only columns around nodes being improved
-        aq, acols = quads[active], cols[active]
         for k in range(len(tops)):
-            score = np.full(n, np.inf)
-            for slot in range(4):
-                trial = acols.copy()
-                trial[:, slot] = bottoms[k][aq[:, slot]]
-                trial[:, 4 + slot] = tops[k][aq[:, slot]]
-                np.minimum.at(score, aq[:, slot], column_score(trial, layers))
+            score = _score_moves(cols, quads, active, bottoms[k], tops[k], n, layers)
             better = todo & (score > best + 1e-6)
             best[better], best_k[better] = score[better], k
-        gain = np.where(best_k != choice, best - current, 0.0)
-        if not (gain > 0).any():
+        move = _independent(np.where(best_k != choice, best - current, 0.0), quads)
+        if not move.any():
             break
-        # an independent set: nodes whose gain is the largest among all nodes sharing an element
-        # with them (ties to the lower index), so no two moved nodes share an element
-        key = gain + 1e-9 * (n - np.arange(n)) / n
-        elem_max = key[quads].max(1)
-        around = np.full(n, -np.inf)
-        np.maximum.at(around, quads.ravel(), np.repeat(elem_max, 4))
-        move = (gain > 0) & (key >= around)
         choice[move] = best_k[move]
         idx = np.flatnonzero(move)
         bottom[move] = bottoms[best_k[move], idx]
         top[move] = tops[best_k[move], idx]
     return choice
+
+
+def settle(bottom: np.ndarray, top: np.ndarray, target: np.ndarray, quads: np.ndarray, layers: int,
+           floor: float = 0.55, sweeps: int = 4) -> np.ndarray:
+    """Move articular nodes (P, 3) towards ``target`` (P, 3; their closest surface points) - the
+    whole way, or 2/3 or 1/3 of it - where the worst :func:`column_score` around each stays at
+    least ``floor`` (or does not drop, where it is already below).  Returns the new tops (P, 3).
+
+    Rim floors and untangling steps lift a few articular nodes off the surface;
+    this takes back whatever the elements allow.
+    """
+    n = len(top)
+    top = top.copy()
+    for _ in range(sweeps):
+        gap = np.linalg.norm(target - top, axis=1)
+        todo = gap > 0.02
+        if not todo.any():
+            break
+        cols = np.concatenate([bottom[quads], top[quads]], axis=1)
+        current = _node_min(column_score(cols, layers), quads, n)
+        active = np.flatnonzero(todo[quads].any(1))
+        best_frac = np.zeros(n)
+        for frac in (1 / 3, 2 / 3, 1.0):
+            cand = top + frac * (target - top)
+            score = _score_moves(cols, quads, active, bottom, cand, n, layers)
+            ok = todo & (score >= np.minimum(current, floor))
+            best_frac[ok] = frac
+        move = _independent(best_frac * gap, quads)
+        if not move.any():
+            break
+        top[move] += best_frac[move, None] * (target[move] - top[move])
+    return top
