@@ -3,7 +3,7 @@
     .venv/bin/python bench/robustness.py [MAPS_OR_GLOBS ...] [--phantoms N] [--workers 2] [--element-size 1.0]
 
 Default maps: every real label map in ../shared/data/real (pymskt and oai_labels).
-Prints the success rate (quality gate passed), a quality table per tissue
+Prints the success rate (quality gate passed), how many also meet the fidelity targets, a quality table per tissue
 (min scaled Jacobian distribution, fraction < 0.5, edge ratio), fidelity
 (volume error, coverage, articular deviation), fallback counts and time per knee.
 """
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import glob
+import json
 import time
 import warnings
 from collections import Counter, defaultdict
@@ -65,6 +66,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--element-size", type=float, default=1.0)
     ap.add_argument("--no-fallbacks", action="store_true", help="first attempt only (what passes without help)")
+    ap.add_argument("--json", type=Path, help="also write every report entry to this file")
     args = ap.parse_args()
     sources = [p for m in args.maps for p in sorted(glob.glob(m))]
     if not sources and not args.no_real:
@@ -86,12 +88,14 @@ def main() -> None:
                     out[t].get("reason", f"min SJ {out[t].get('min_scaled_jacobian')}") for t in bad))
             bar.advance(task)
 
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1, default=float))
     per = defaultdict(list)
     for out in results.values():
         for t, f in out.items():
             per[t].append(f)
     table = Table(title=f"cartilage meshing on {len(results)} knees (element size {args.element_size} mm)")
-    for col in ("tissue", "success", "min SJ: median (worst)", "% SJ<0.5: median (max)", "edge ratio max (worst)",
+    for col in ("tissue", "success", "fidelity ok", "min SJ: median (worst)", "% SJ<0.5: median (max)", "edge ratio max (worst)",
                 "% ER>6 max", "vol err: median |.| (worst)", "coverage: median (worst)", "dev p95 mm: median (worst)",
                 "fallbacks", "s/tissue median"):
         table.add_column(col)
@@ -102,7 +106,7 @@ def main() -> None:
         total_ok += len(ok)
         m = [f for f in fs if "min_scaled_jacobian" in f]
         if not m:
-            table.add_row(t, f"{len(ok)}/{len(fs)}", *["-"] * 9)
+            table.add_row(t, f"{len(ok)}/{len(fs)}", *["-"] * 10)
             continue
         sj = np.array([f["min_scaled_jacobian"] for f in m])
         below = np.array([f["frac_sj_below_0_5"] for f in m]) * 100
@@ -112,7 +116,8 @@ def main() -> None:
         cov = np.array([f["coverage"] for f in m])
         dev = np.array([f["surface_deviation_mm"]["p95"] for f in m])
         fb = Counter(x for f in m for x in f["fallbacks"])
-        table.add_row(t, f"{len(ok)}/{len(fs)}", f"{np.median(sj):.3f} ({sj.min():.3f})", f"{np.median(below):.3f} ({below.max():.3f})",
+        fid = sum(bool(f.get("fidelity_passed")) for f in m)
+        table.add_row(t, f"{len(ok)}/{len(fs)}", f"{fid}/{len(fs)}", f"{np.median(sj):.3f} ({sj.min():.3f})", f"{np.median(below):.3f} ({below.max():.3f})",
                       f"{np.median(er):.2f} ({er.max():.2f})", f"{er6.max():.3f}", f"{np.median(vol):.2%} ({vol.max():.2%})",
                       f"{np.median(cov):.3f} ({cov.min():.3f})", f"{np.median(dev):.3f} ({dev.max():.3f})",
                       ", ".join(f"{k}: {v}" for k, v in fb.items()) or "none",

@@ -7,13 +7,16 @@ import json
 import numpy as np
 import pytest
 import pyvista as pv
+import SimpleITK as sitk
 
-from conftest import SAMPLE, real
+from conftest import OAI, PYMSKT_LEFT, SAMPLE, real
 from kneemesh_core.hexmesh import mesh_cartilage
 from kneemesh_core.hexmesh.optimize import scaled_jacobian
 from kneemesh_core.hexmesh.quality import hex_quality, passes_gate, to_grid
+from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.knee import load_knee
 from kneemesh_core.pipeline import JobOptions, run
+from kneemesh_core.tissues import LABEL
 
 
 @pytest.fixture(scope="module")
@@ -43,6 +46,62 @@ def test_femoral_cartilage_meets_gate_with_fallbacks(sample):
     assert f["gate_passed"] and f["min_scaled_jacobian"] >= 0.5, f
     assert f["coverage"] >= 0.97 and abs(f["volume_error"]) <= 0.05
     assert f["domain"]["kind"] == "cylinder" and abs(f["domain"]["axis"][0]) > 0.9  # condylar axis ~ left-right
+
+
+def _meets_gate_and_fidelity(f: dict) -> None:
+    assert f["gate_passed"] and f["fidelity_passed"], f
+    assert f["min_scaled_jacobian"] >= 0.5 and f["collapsed"] == 0 and f["inverted"] == 0
+    assert f["frac_edge_ratio_above_6"] <= 0.001
+    assert abs(f["volume_error"]) <= 0.05 and f["coverage"] >= 0.97
+    assert f["surface_deviation_mm"]["median"] <= 0.15 and f["surface_deviation_mm"]["p95"] <= 0.5
+
+
+def test_left_knee_lateral_plate_on_the_left():
+    """A real left knee (Philips, LPS x ~ +74 mm): the lateral plate meshes, and lies lateral (+x) of the medial."""
+    knee = load_knee(real(PYMSKT_LEFT))
+    assert knee.side == "left"
+    lateral = mesh_cartilage(knee.labels, "lateral_tibial_cartilage")
+    _meets_gate_and_fidelity(lateral.facts)
+    medial = np.argwhere(sitk.GetArrayViewFromImage(knee.labels) == LABEL["medial_tibial_cartilage"])[:, ::-1]
+    assert lateral.mesh.points[:, 0].mean() > voxel_to_lps(knee.labels, medial)[:, 0].mean() + 15
+
+
+def test_full_thickness_defect_stays_a_hole():
+    """A real OAI patella whose cartilage has a full-thickness defect: the mesh keeps it open."""
+    cm = mesh_cartilage(load_knee(real(OAI / "OAI_AKOA_9057479_00m.nii.gz")).labels, "patellar_cartilage")
+    _meets_gate_and_fidelity(cm.facts)
+    assert cm.facts["defect_holes"] >= 1
+    # the articular face has a boundary loop per hole besides the outer edge
+    surf = cm.grid().extract_surface()
+    top = surf.extract_cells(np.flatnonzero(surf.point_data["articular"][surf.faces.reshape(-1, 5)[:, 1:]].all(1)))
+    loops = top.extract_feature_edges(boundary_edges=True, feature_edges=False, manifold_edges=False,
+                                      non_manifold_edges=False).connectivity()
+    assert len(np.unique(loops.point_data["RegionId"])) >= 2
+
+
+def test_knee_with_lesion_labels():
+    """OAI-ZIB lesion labels (7, 8, 9: bone lesions) are merged into their bones; the plate meshes."""
+    path = real(OAI / "OAI_AKOA_9135902_00m.nii.gz")
+    assert {7, 8, 9} <= set(np.unique(sitk.GetArrayViewFromImage(sitk.ReadImage(str(path)))).tolist())
+    _meets_gate_and_fidelity(mesh_cartilage(load_knee(path).labels, "lateral_tibial_cartilage").facts)
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_phantom_plates_with_defects_pass_gate(phantoms, side):
+    """Severity-2 phantoms (thinning and full-thickness defects) on both sides: both plates within the gate.
+
+    (Phantom plates are meshed less faithfully than real ones - coverage 0.87-0.98 and volume
+    within 9%, against 0.97 and 5% on real knees - an open item; fidelity is held to a looser bound here.)"""
+    from kneemesh_core.io import Volume
+    from kneemesh_core.knee import canonicalise
+
+    _, labels = phantoms(side, 2)
+    knee = canonicalise(Volume(labels, f"phantom_{side}.nii.gz"))
+    assert knee.side == side
+    for tissue in ("medial_tibial_cartilage", "lateral_tibial_cartilage"):
+        f = mesh_cartilage(knee.labels, tissue).facts
+        assert f["gate_passed"], (tissue, f)
+        assert f["coverage"] >= 0.85 and abs(f["volume_error"]) <= 0.1, (tissue, f)
 
 
 def test_numpy_scaled_jacobian_matches_verdict():

@@ -105,7 +105,9 @@ def _domain(tissue: str, points: np.ndarray, labels: sitk.Image):
     cylinder about the patella's superior-inferior axis: its articular surface
     curves medio-laterally over the ridge, and radial rays meet the periphery
     far less obliquely than the rays of a plane.  Tibial plates: a plane.
-    The bone must lie on the rays' starting side, or the plane is used.
+    The bone must lie on the rays' starting side, and the fitted cylinder must
+    be plausible (axis within 20 deg of the anatomical hint, radius at least
+    18 mm: real knees give 23-51 mm), or the plane is used.
     """
     bone = sitk.GetArrayViewFromImage(labels) == LABEL[BONE_OF[tissue]]
     if not bone.any():
@@ -117,7 +119,8 @@ def _domain(tissue: str, points: np.ndarray, labels: sitk.Image):
         cyl = CylinderDomain.fit(points, ml_hint=np.array(axis_hint))
         v = bone_centre - cyl.origin
         bone_r = np.linalg.norm(v - (v @ cyl.axis) * cyl.axis)
-        if bone_r < cyl.radius:
+        plausible = abs(cyl.axis @ np.asarray(axis_hint)) >= np.cos(np.deg2rad(20.0)) and cyl.radius >= 18.0
+        if bone_r < cyl.radius and plausible:
             return cyl
     return PlaneDomain.fit(points, bone_centre)
 
