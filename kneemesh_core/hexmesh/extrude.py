@@ -13,10 +13,14 @@
    not drop over a single element.
 4. Each node's column direction is chosen among blends of the bone normal
    and the domain ray to maximise the worst element around it
-   (:mod:`.optimize`); where an element stays below 0.5, the column may be
-   shortened or lengthened by up to 20%, and at last its articular node may
-   step off the surface by up to a few tenths of a millimetre (untangling).
-5. ``layers`` element layers are interpolated linearly along each column.
+   (:mod:`.optimize`: the first- and last-layer elements, scaled Jacobian
+   first, then edge ratio); where an element stays below 0.5, the column may
+   be shortened or lengthened by up to 20%, and at last (untangling) its
+   articular node may step off the surface by up to 0.4 mm or its bone-side
+   node slide along the bone surface, carrying the column.
+5. Articular nodes off the surface settle back onto it wherever the elements
+   around them stay good (:func:`.optimize.settle`).
+6. ``layers`` element layers are interpolated linearly along each column.
 """
 
 from __future__ import annotations

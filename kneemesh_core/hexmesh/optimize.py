@@ -1,10 +1,12 @@
-"""Choosing each column's direction to maximise the worst scaled Jacobian around it.
+"""Choosing each node's column to maximise the worst element around it.
 
 Columns along the bone-side normal keep elements square where the plate is
 inclined to the projection direction; columns along the domain ray never cross
-one another.  Each node picks, among directions blended between the two, the
-one whose surrounding elements have the best minimum scaled Jacobian, greedily
-and in a few sweeps.
+one another.  Each node picks, among candidate columns (directions blended
+between the two, lengths, untangling steps, slides along the bone), the one
+whose surrounding elements score best (:func:`column_score`: scaled Jacobian,
+then edge ratio), greedily and in a few sweeps; :func:`settle` then takes
+articular nodes back onto the surface where the elements allow.
 """
 
 from __future__ import annotations
