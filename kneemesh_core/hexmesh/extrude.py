@@ -32,7 +32,7 @@ import pyvista as pv
 
 from kneemesh_core.hexmesh.footprint import Footprint
 from kneemesh_core.hexmesh.optimize import choose_columns, choose_tops, settle
-from kneemesh_core.hexmesh.quadmesh import QuadMesh, quad_edges
+from kneemesh_core.hexmesh.quadmesh import EIGHT_DIRECTIONS, QuadMesh, quad_edges
 from kneemesh_core.hexmesh.rays import crossings, intersector
 
 #: Largest edge ratio the rim columns are built for.
@@ -183,21 +183,23 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
     # an articular node may step off the surface by fractions of a millimetre, or a bone-side
     # node slide along the bone surface (contour nodes along the contour), its column carried along
     u = qm.points.copy()
-    plane_dirs = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [0.7, 0.7], [-0.7, 0.7], [0.7, -0.7], [-0.7, -0.7]])
+    at = np.arange(n)
     for _ in range(8):
         col = top - bone
         length = np.linalg.norm(col, axis=1, keepdims=True)
         tops = [top, _node_mean(top, edges, n), bone + _unit(_node_mean(_unit(col), edges, n)) * length]
         tops += [top + a * t for a in (0.4, -0.4, 0.2, -0.2, 0.1, -0.1, 0.05, -0.05) for t in (t1, t2, normal)]
-        slides = [_onto_contour(fp, u + a * h_mm * d, qm.contour) for a in (0.3, 0.12) for d in plane_dirs]
+        slides = [_onto_contour(fp, u + a * h_mm * d, qm.contour) for a in (0.3, 0.12) for d in EIGHT_DIRECTIONS]
         lifted = [domain.position(v, fp.sample(fp.bone, np.where(qm.contour[:, None], v + probe_mm * inward, v)))
                   for v in slides]
         bottoms = np.stack([bone] * len(tops) + lifted)
-        k = choose_columns(bottoms, np.stack(tops + [b + (top - bone) for b in lifted]), quads, layers, good=0.5)
-        at = np.arange(n)
+        columns = np.stack(tops + [b + col for b in lifted])
+        k = choose_columns(bottoms, columns, quads, layers, good=0.5)
+        if not k.any():  # nothing moved: another pass would offer the same candidates
+            break
         slid = k >= len(tops)
         u[slid] = np.stack(slides)[k[slid] - len(tops), at[slid]]
-        top, bone = np.stack(tops + [b + (top - bone) for b in lifted])[k, at], bottoms[k, at]
+        top, bone = columns[k, at], bottoms[k, at]
     top = _edge_ratio_guard(bone, top, quads, layers)
     # articular nodes the rim floor or the untangling lifted off the surface go back onto it
     # wherever the elements around them stay good

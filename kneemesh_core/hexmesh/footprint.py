@@ -43,12 +43,18 @@ class Footprint:
 
     def holes(self) -> int:
         """Holes in the footprint (full-thickness defects the mesh keeps open)."""
-        lab, n = ndi.label(~self.inside)
-        border = np.unique(np.r_[lab[0], lab[-1], lab[:, 0], lab[:, -1]])
-        return int(n - np.count_nonzero(border))
+        return len(enclosed_holes(self.inside)[1])
 
     def area_mm2(self) -> float:
         return float(self.inside.sum() * self.grid.step**2)
+
+
+def enclosed_holes(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Holes of a 2-D mask: the labelled background (same shape) and the labels of the background
+    components that do not touch the array border."""
+    lab, n = ndi.label(~mask)
+    border = np.r_[lab[0], lab[-1], lab[:, 0], lab[:, -1]]
+    return lab, np.setdiff1d(np.arange(1, n + 1), border)
 
 
 def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction: float = 0.35,

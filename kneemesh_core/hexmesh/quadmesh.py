@@ -24,7 +24,11 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage.measure import find_contours
 
-from kneemesh_core.hexmesh.footprint import Footprint
+from kneemesh_core.hexmesh.footprint import Footprint, enclosed_holes
+
+
+#: Unit steps in the parameter plane that the node optimisers try.
+EIGHT_DIRECTIONS = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [0.7, 0.7], [-0.7, 0.7], [0.7, -0.7], [-0.7, -0.7]])
 
 
 @dataclass
@@ -94,11 +98,10 @@ def _fill_false_holes(cells: np.ndarray, fp: Footprint, origin: np.ndarray, h: f
 
     ``cells`` (ni-1, nj-1) bool; ``origin`` (2,) parameter position of lattice node (0, 0).
     """
-    lab, n = ndi.label(~cells)
-    border = np.unique(np.r_[lab[0], lab[-1], lab[:, 0], lab[:, -1]])
+    lab, holes = enclosed_holes(cells)
     sub = (np.arange(5) + 0.5) / 5  # 5 x 5 samples per cell: the ray grid is h / 4
     cells = cells.copy()
-    for k in np.setdiff1d(np.arange(1, n + 1), border):
+    for k in holes:
         ci, cj = np.nonzero(lab == k)
         s = origin[0] + h * (ci[:, None, None] + sub[None, :, None])
         t = origin[1] + h * (cj[:, None, None] + sub[None, None, :])
@@ -304,7 +307,7 @@ def _spread_on_contour(fp: Footprint, partner: np.ndarray, bverts: np.ndarray, n
     if not polys:
         return partner, on_poly, polys
     partner = partner.copy()
-    oriented: dict[int, int] = {}
+    oriented: set[int] = set()  # polylines already turned the way their loops run
     seen: set[int] = set()
     for start in bverts.tolist():
         if start in seen:
@@ -327,15 +330,12 @@ def _spread_on_contour(fp: Footprint, partner: np.ndarray, bverts: np.ndarray, n
             if np.median(dist[k, run]) > 2.0 * h or (len(runs) > 1 and len(run) < 2):
                 continue
             closed = len(runs) == 1
-            if k in oriented:
-                choices = [oriented[k]]
-            else:
-                choices = [1, -1]
+            choices = (1,) if k in oriented else (1, -1)
             fits = {o: _match_along(polys[k][::o], guess[run], 0.25 * h, closed) for o in choices}
             o = min(fits, key=lambda c: fits[c][1])
-            if k not in oriented and o == -1:
+            if o == -1:
                 polys[k] = np.ascontiguousarray(polys[k][::-1])
-            oriented[k] = 1
+            oriented.add(k)
             partner[idx[run]] = _arc_point(polys[k], fits[o][0])
             on_poly[idx[run]] = k
     return partner, on_poly, polys
@@ -354,7 +354,6 @@ def _optimise(points: np.ndarray, quads: np.ndarray, contour: np.ndarray, h: flo
     n = len(points)
     e = quad_edges(quads)
     deg = np.maximum(np.bincount(e.ravel(), minlength=n), 1)[:, None]
-    dirs = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [0.7, 0.7], [-0.7, 0.7], [0.7, -0.7], [-0.7, -0.7]])
     slid = [np.flatnonzero(on_poly == k) for k in range(len(polys))]
     arc = {k: _arc_project(polys[k], points[idx])[0] for k, idx in enumerate(slid) if len(idx)}
     stuck = contour & (on_poly < 0)
@@ -375,7 +374,7 @@ def _optimise(points: np.ndarray, quads: np.ndarray, contour: np.ndarray, h: flo
         acc = np.zeros_like(points)
         np.add.at(acc, e[:, 0], points[e[:, 1]])
         np.add.at(acc, e[:, 1], points[e[:, 0]])
-        cands = [acc / deg] + [points + step * h * d for step in (0.2, 0.06) for d in dirs]
+        cands = [acc / deg] + [points + step * h * d for step in (0.2, 0.06) for d in EIGHT_DIRECTIONS]
         for c in cands:
             c[contour] = points[contour]
         for step in steps:
