@@ -1,26 +1,39 @@
 """The one definition of a KneeMesh job, shared by the CLI (in-process) and the workers.
 
-A job is three stages over a job folder:
+A job is a :func:`plan`: stages run in order, and the steps of one stage are
+independent of each other, so a runner may run them in parallel:
 
-1. :func:`ingest` reads the input, decides the label convention and the side,
-   and writes canonical labels ``labels.nrrd`` and ``job.json``;
-2. :func:`mesh_tissue`, once per tissue and independent of the others, writes
-   that tissue's mesh and returns its report entry (a failure is an entry with
-   ``status: "failed"`` and a reason, never an exception);
-3. :func:`write_report` gathers the entries into ``report.json``.
+1. ``ingest`` reads the input, decides the label convention and the side, and
+   writes canonical labels ``labels.nrrd`` and ``job.json``;
+2. one step per bone, then one per cartilage (later stages such as blending
+   need the bone surfaces); each writes that tissue's mesh and returns its
+   report entry (a failure is an entry with ``status: "failed"`` and a reason,
+   never an exception);
+3. ``report`` gathers the entries into ``report.json``;
+4. ``bundle`` (optional) zips the outputs into ``bundle.zip`` and lists every
+   artifact with its size and SHA-256 in ``artifacts.json``.
 
-Every argument is a path, a name or a plain dict, so a queue can carry it.
+:func:`run_step` runs one step and records it in ``steps/<step>.json``
+(running, done or failed, with times), which is what status pages read. It is
+idempotent: a step already done returns its record, so a queue may deliver a
+step twice. Every argument is a path, a name or a plain dict, so a queue can
+carry it. :func:`run` is the in-process runner; the Celery canvas in
+``services.worker`` is the other one, built from the same plan.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
+import hashlib
 import json
 import os
+import shutil
 import tempfile
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed
+import zipfile
+from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -37,9 +50,19 @@ from kneemesh_core.tissues import BONES, CARTILAGES, TISSUES, resolve_convention
 LABELS_FILE = "labels.nrrd"
 JOB_FILE = "job.json"
 REPORT_FILE = "report.json"
+BUNDLE_FILE = "bundle.zip"
+MANIFEST_FILE = "artifacts.json"
+STEPS_DIR = "steps"
+INGEST, REPORT, BUNDLE = "ingest", "report", "bundle"
 GROUPS = {"bones": BONES, "cartilage": CARTILAGES, "all": TISSUES}
+# What the bundle carries: labels used, meshes, surfaces, the report (later: attachments, decks).
+BUNDLED = (LABELS_FILE, JOB_FILE, REPORT_FILE, "meshes/*", "surfaces/*")
 
 Progress = Callable[[str, str], None]
+
+
+class JobCancelled(Exception):
+    """Raised by :func:`run` between stages when its ``cancelled`` callback says so."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +74,7 @@ class JobOptions:
     side: str | None = None
     only: str = "all"
     stl: bool = False
+    bundle: bool = False
     surface: SurfaceOptions = SurfaceOptions()
     hex: HexOptions = HexOptions()
 
@@ -161,37 +185,168 @@ def write_report(out_dir: str | os.PathLike, entries: dict[str, dict]) -> dict:
     return report
 
 
+def plan(options: JobOptions) -> list[tuple[str, ...]]:
+    """The stages of a job, in order; the steps of one stage may run in parallel."""
+    tissues = options.tissues()
+    stages: list[tuple[str, ...]] = [(INGEST,)]
+    for group in (BONES, CARTILAGES):
+        steps = tuple(_longest_first(t for t in tissues if t in group))
+        if steps:
+            stages.append(steps)
+    stages.append((REPORT,))
+    if options.bundle:
+        stages.append((BUNDLE,))
+    return stages
+
+
+def _now() -> str:
+    return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def read_step(out_dir: str | os.PathLike, step: str) -> dict | None:
+    """The record of one step (``state``: running, done or failed), or None if it never started."""
+    try:
+        return json.loads((Path(out_dir) / STEPS_DIR / f"{step}.json").read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+
+
+def write_step(out_dir: str | os.PathLike, step: str, record: dict) -> None:
+    folder = Path(out_dir) / STEPS_DIR
+    folder.mkdir(exist_ok=True)
+    _atomic_write_text(folder / f"{step}.json", json.dumps({"step": step, **record}, indent=1))
+
+
+def run_step(
+    out_dir: str | os.PathLike,
+    step: str,
+    options: dict,
+    input_path: str | os.PathLike | None = None,
+    context: dict | None = None,
+) -> dict:
+    """Run one step of a job's plan and return its record; a step already done is not run again.
+
+    ``context`` (who runs it: task id, host, pid) is kept in the record. Tissue
+    steps never raise: their failures are report entries. ``ingest``,
+    ``report`` and ``bundle`` raise on failure after recording it, except that a
+    failed ingest writes nothing at all (bad input leaves no half-written job).
+    """
+    done = read_step(out_dir, step)
+    if done is not None and done["state"] == "done":
+        return done
+    who = dict(context or {})
+    started, t0 = _now(), time.perf_counter()
+    if step == INGEST:
+        if input_path is None:
+            raise KneeMeshError("bad_option", "the ingest step needs the input file.")
+        ingest(input_path, out_dir, JobOptions.from_dict(options))
+        result: dict = {"status": "ok"}
+    else:
+        write_step(out_dir, step, {"state": "running", "started_at": started, **who})
+        try:
+            if step in TISSUES:
+                result = mesh_tissue(out_dir, step, options)
+            elif step == REPORT:
+                opts = JobOptions.from_dict(options)
+                entries = {t: read_step(out_dir, t)["result"] for t in opts.tissues()}
+                result = write_report(out_dir, entries)["summary"]
+            elif step == BUNDLE:
+                result = {"artifacts": len(bundle(out_dir))}
+            else:
+                raise KneeMeshError("bad_option", f"unknown step {step!r}.")
+        except Exception as exc:
+            code, reason = (exc.code, exc.message) if isinstance(exc, KneeMeshError) else ("internal", f"{type(exc).__name__}: {exc}")
+            write_step(out_dir, step, {"state": "failed", "started_at": started, "finished_at": _now(),
+                                       "seconds": round(time.perf_counter() - t0, 3), "code": code, "reason": reason, **who})
+            raise
+    record = {"state": "done", "started_at": started, "finished_at": _now(),
+              "seconds": round(time.perf_counter() - t0, 3), "result": result, **who}
+    write_step(out_dir, step, record)
+    return {"step": step, **record}
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def bundle(out_dir: str | os.PathLike) -> list[dict]:
+    """Zip the job's outputs into ``bundle.zip`` and list every artifact in ``artifacts.json``.
+
+    Returns the list: ``name`` (path relative to ``out_dir``, '/'-separated), ``size`` (bytes)
+    and ``sha256``, the bundle last.
+    """
+    out = Path(out_dir)
+    files = sorted({f for pattern in BUNDLED for f in out.glob(pattern) if f.is_file() and not f.name.startswith(".tmp-")})
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".zip", dir=out)
+    os.close(fd)
+    try:
+        # Level 1: meshes are binary and barely compress further; speed matters more.
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+            for f in files:
+                zf.write(f, f.relative_to(out).as_posix())
+        os.replace(tmp, out / BUNDLE_FILE)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    manifest = [{"name": f.relative_to(out).as_posix(), "size": f.stat().st_size, "sha256": _sha256(f)}
+                for f in [*files, out / BUNDLE_FILE]]
+    _atomic_write_text(out / MANIFEST_FILE, json.dumps(manifest, indent=1))
+    return manifest
+
+
 def run(
     input_path: str | os.PathLike,
     out_dir: str | os.PathLike,
     options: JobOptions = JobOptions(),
     *,
     workers: int = 2,
+    pool: Executor | None = None,
+    fresh: bool = True,
     progress: Progress | None = None,
+    cancelled: Callable[[], bool] | None = None,
 ) -> dict:
-    """The whole job in this process (tissues on a pool of ``workers`` processes)."""
-    say = progress or (lambda stage, state: None)
-    say("ingest", "running")
-    ingest(input_path, out_dir, options)
-    say("ingest", "done")
-    tissues = options.tissues()
-    entries: dict[str, dict] = {}
+    """Run the whole :func:`plan` in this process and return the report.
+
+    Steps of a stage run on ``pool`` (or a new pool of ``workers`` processes;
+    one worker runs them here). ``fresh`` forgets the step records of an
+    earlier run into ``out_dir``; without it, steps already done are skipped
+    (the embedded service resumes jobs whose ingest the API has done).
+    ``cancelled`` is asked before each stage; it raises :class:`JobCancelled`.
+    """
+    say = progress or (lambda step, state: None)
+    if fresh:
+        shutil.rmtree(Path(out_dir) / STEPS_DIR, ignore_errors=True)
     opts = options.to_dict()
-    if workers <= 1:
-        for t in tissues:
-            say(t, "running")
-            entries[t] = mesh_tissue(out_dir, t, opts)
-            say(t, entries[t]["status"])
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = {pool.submit(mesh_tissue, str(out_dir), t, opts): t for t in _longest_first(tissues)}
-            for t in tissues:
-                say(t, "queued")
+    own_pool = pool is None and workers > 1
+    if own_pool:
+        pool = ProcessPoolExecutor(max_workers=workers)
+    try:
+        for stage in plan(options):
+            if cancelled is not None and cancelled():
+                raise JobCancelled(str(out_dir))
+            if pool is None or len(stage) == 1:
+                for step in stage:
+                    say(step, "running")
+                    say(step, _outcome(run_step(out_dir, step, opts, input_path)))
+                continue
+            for step in stage:
+                say(step, "running")
+            futures = {pool.submit(run_step, str(out_dir), step, opts): step for step in stage}
             for fut in as_completed(futures):
-                t = futures[fut]
-                entries[t] = fut.result()
-                say(t, entries[t]["status"])
-    return write_report(out_dir, entries)
+                say(futures[fut], _outcome(fut.result()))
+    finally:
+        if own_pool:
+            pool.shutdown()
+    return json.loads((Path(out_dir) / REPORT_FILE).read_text())
+
+
+def _outcome(record: dict) -> str:
+    """What a progress line shows for a finished step: a tissue's status, else 'done'."""
+    return record.get("result", {}).get("status", "done") if isinstance(record.get("result"), dict) else "done"
 
 
 def _longest_first(tissues: Iterable[str]) -> list[str]:
