@@ -28,7 +28,7 @@ demo: $(STAMP)
 	@echo "Outputs are in $(abspath $(DEMO_OUT)) (meshes/, report.json)."
 
 test: $(STAMP)
-	$(PY) -m pytest -n 2 -q
+	$(PY) -m pytest -n 2 --dist loadgroup -q
 
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e ".[test,bench]"

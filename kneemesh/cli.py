@@ -151,5 +151,94 @@ def mesh(
         raise typer.Exit(1)
 
 
+DataDirOpt = typer.Option(None, "--data-dir", help="Job folders live here (default: $KNEEMESH_DATA_DIR or ./kneemesh-data).")
+BrokerOpt = typer.Option(None, "--broker", help="redis://host:port/db (default: $KNEEMESH_BROKER_URL).")
+
+
+def _service_env(data_dir: Optional[Path], broker: Optional[str]) -> None:
+    """The service reads its settings from KNEEMESH_* variables; flags override them for this process and its children."""
+    import os
+
+    if data_dir is not None:
+        os.environ["KNEEMESH_DATA_DIR"] = str(data_dir)
+    if broker is not None:
+        os.environ["KNEEMESH_BROKER_URL"] = broker
+
+
+@app.command()
+def serve(
+    host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on."),
+    port: int = typer.Option(8000, "--port", help="Port to listen on."),
+    broker: Optional[str] = BrokerOpt,
+    data_dir: Optional[Path] = DataDirOpt,
+    workers: int = typer.Option(2, "--workers", min=1, help="Embedded mode: processes meshing tissues."),
+):
+    """Run the HTTP API. With no broker, jobs run on an in-process pool; with --broker they go to Celery workers."""
+    import os
+
+    import uvicorn
+
+    _service_env(data_dir, broker)
+    os.environ.setdefault("KNEEMESH_WORKERS", str(workers))
+    with _clear_errors():
+        from services.api import create_app
+
+        api = create_app()
+    mode = f"Celery on {api.state.settings.broker_url}" if api.state.settings.broker_url else f"embedded, {workers} worker processes"
+    err.print(f"kneemesh API on http://{host}:{port} ({mode}); jobs in {api.state.jobs.store.root}")
+    uvicorn.run(api, host=host, port=port, log_level="info")
+
+
+@app.command()
+def worker(
+    broker: Optional[str] = BrokerOpt,
+    data_dir: Optional[Path] = DataDirOpt,
+    concurrency: int = typer.Option(2, "--concurrency", "-c", min=1, help="Worker processes."),
+    loglevel: str = typer.Option("info", "--loglevel", help="Celery log level."),
+    name: Optional[str] = typer.Option(None, "--name", help="Worker node name (default: kneemesh@host)."),
+):
+    """Start a Celery worker for the service's jobs (needs --broker or $KNEEMESH_BROKER_URL)."""
+    _service_env(data_dir, broker)
+    from services.settings import Settings
+
+    settings = Settings.from_env()
+    if not settings.broker_url:
+        err.print("[bold red]error[/] (no_broker): a worker needs a broker: --broker redis://host:6379/0 or KNEEMESH_BROKER_URL.")
+        raise typer.Exit(2)
+    from services.worker.celery_app import QUEUE, app as celery_app
+
+    celery_app.worker_main(["worker", "-Q", QUEUE, "-c", str(concurrency), "-l", loglevel,
+                                     "-n", name or "kneemesh@%h"])
+
+
+@app.command()
+def cleanup(
+    data_dir: Optional[Path] = DataDirOpt,
+    older_than: Optional[float] = typer.Option(None, "--older-than", help="Days (default: $KNEEMESH_RETENTION_DAYS or 30)."),
+):
+    """Delete finished jobs older than the retention period, with their uploads and artifacts."""
+    _service_env(data_dir, None)
+    from services.jobs import Jobs
+    from services.settings import Settings
+    from services.store import FileStore
+
+    settings = Settings.from_env()
+    days = settings.retention_days if older_than is None else older_than
+    gone = Jobs(FileStore(settings.data_dir)).expire(days)
+    out.print(f"removed {len(gone)} job(s) older than {days:g} days from {settings.data_dir}")
+
+
+@app.command()
+def openapi(out_file: Optional[Path] = typer.Option(None, "--out", help="Write here instead of stdout.")):
+    """Print the API's OpenAPI document (YAML), as committed in openapi.yaml."""
+    from services.api.openapi import openapi_yaml
+
+    text = openapi_yaml()
+    if out_file is None:
+        sys.stdout.write(text)
+    else:
+        out_file.write_text(text)
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

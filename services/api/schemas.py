@@ -1,0 +1,120 @@
+"""Request and response bodies of the API (pydantic v2); the OpenAPI document is built from them."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, Field
+
+State = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+StepState = Literal["pending", "running", "done", "failed"]
+
+
+class Error(BaseModel):
+    code: str = Field(description="Stable machine-readable code, e.g. `not_an_image`, `upload_too_large`.")
+    message: str = Field(description="What is wrong and what is expected.")
+    details: list[dict] | None = None
+
+
+class Options(BaseModel):
+    input_type: Literal["labels", "image"] = "labels"
+    preset: str | None = None
+    side: Literal["left", "right"] | None = None
+    only: Literal["all", "bones", "cartilage"] = "all"
+    element_size: float = Field(1.0, gt=0.2, le=5.0, description="Cartilage in-plane element edge, mm.")
+    layers: int = Field(4, ge=1, le=12, description="Cartilage element layers through the thickness.")
+
+
+class Links(BaseModel):
+    self: str
+    artifacts: str
+    bundle: str
+
+
+class JobCreated(BaseModel):
+    id: str
+    state: State
+    queue_position: int | None
+    urls: Links
+
+
+class StepProgress(BaseModel):
+    step: str = Field(description="ingest, a tissue name, report or bundle.")
+    kind: str = Field(description="ingest, bone, cartilage, report or bundle.")
+    stage: int = Field(description="Steps of one stage run in parallel; stages run in order.")
+    state: StepState
+    status: str | None = Field(None, description="A tissue's outcome: ok, or failed with `error`.")
+    started_at: str | None = None
+    finished_at: str | None = None
+    seconds: float | None = None
+    task_id: str | None = Field(None, description="The Celery task that ran the step (Celery mode).")
+    worker: str | None = None
+    error: Error | None = None
+
+
+class JobStatus(BaseModel):
+    id: str
+    state: State
+    created_at: str
+    input_name: str
+    input_type: str
+    options: dict
+    batch_id: str | None
+    queue_position: int | None = Field(description="1 = next to start; null unless queued.")
+    progress: float = Field(description="Fraction of steps finished, 0 to 1.")
+    steps: list[StepProgress]
+    tissues_ok: list[str]
+    tissues_failed: list[str]
+    error: Error | None = None
+    deleted: bool = False
+    urls: Links
+
+
+class JobSummary(BaseModel):
+    id: str
+    state: State
+    created_at: str
+    input_name: str
+    url: str
+
+
+class JobList(BaseModel):
+    jobs: list[JobSummary]
+
+
+class Artifact(BaseModel):
+    name: str
+    size: int
+    sha256: str
+    url: str
+
+
+class ArtifactList(BaseModel):
+    job_id: str
+    artifacts: list[Artifact]
+
+
+class BatchCreated(BaseModel):
+    id: str
+    jobs: list[JobCreated]
+    url: str
+
+
+class BatchStatus(BaseModel):
+    id: str
+    created_at: str
+    counts: dict[str, int]
+    done: bool = Field(description="Every job of the batch has finished.")
+    jobs: list[JobSummary]
+
+
+class Health(BaseModel):
+    status: str
+    version: str
+
+
+class Readiness(BaseModel):
+    ready: bool
+    runner: str
+    workers: int
+    detail: str

@@ -1,0 +1,144 @@
+"""Job records and what a status page shows, read from the files the pipeline writes.
+
+A job's state is derived, never stored twice: the pipeline's step records
+(``out/steps/<step>.json``, written by whichever process ran the step) say what
+ran, when and how it ended, and the record says who owns the job and whether
+it was cancelled. So the embedded pool and Celery workers on other machines
+report progress the same way, and a restarted API loses nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import json
+import uuid
+from pathlib import Path
+
+from kneemesh_core.pipeline import INGEST, JobOptions, plan, read_step
+from kneemesh_core.tissues import BONES, CARTILAGES
+from services.store import FileStore, atomic_write_json
+
+STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+FINISHED = ("succeeded", "failed", "cancelled")
+
+
+def now() -> str:
+    return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+@dataclasses.dataclass
+class JobRecord:
+    id: str
+    owner: str
+    created_at: str
+    input_name: str
+    input_type: str
+    options: dict
+    batch_id: str | None = None
+    cancelled: bool = False
+    deleted: bool = False
+
+
+def _kind(step: str) -> str:
+    return "bone" if step in BONES else "cartilage" if step in CARTILAGES else step
+
+
+class Jobs:
+    """Create, find and describe jobs kept in a :class:`FileStore`."""
+
+    def __init__(self, store: FileStore):
+        self.store = store
+
+    # records
+    def create(self, owner: str, input_name: str, input_type: str, options: JobOptions,
+               batch_id: str | None = None) -> JobRecord:
+        rec = JobRecord(uuid.uuid4().hex, owner, now(), input_name, input_type, options.to_dict(), batch_id)
+        self.store.create(rec.id)
+        self.save(rec)
+        return rec
+
+    def save(self, rec: JobRecord) -> None:
+        atomic_write_json(self.store.root / "jobs" / rec.id / "record.json", dataclasses.asdict(rec))
+
+    def get(self, job_id: str) -> JobRecord | None:
+        d = self.store.job_dir(job_id)
+        try:
+            return JobRecord(**json.loads((d / "record.json").read_text())) if d else None
+        except FileNotFoundError:
+            return None
+
+    def all(self) -> list[JobRecord]:
+        recs = [r for r in (self.get(j) for j in self.store.job_ids()) if r is not None]
+        return sorted(recs, key=lambda r: (r.created_at, r.id))
+
+    def input_path(self, rec: JobRecord) -> Path:
+        return self.store.input_dir(rec.id) / rec.input_name
+
+    def out_dir(self, rec: JobRecord) -> Path:
+        return self.store.out_dir(rec.id)
+
+    # status
+    def steps(self, rec: JobRecord) -> list[dict]:
+        """One entry per planned step: state pending/running/done/failed, times, tissue status, error."""
+        out = self.out_dir(rec)
+        rows = []
+        for stage_index, stage in enumerate(plan(JobOptions.from_dict(rec.options))):
+            for step in stage:
+                r = read_step(out, step) or {"state": "pending"}
+                result = r.get("result") if isinstance(r.get("result"), dict) else {}
+                row = {"step": step, "kind": _kind(step), "stage": stage_index, "state": r["state"],
+                       "started_at": r.get("started_at"), "finished_at": r.get("finished_at"),
+                       "seconds": r.get("seconds"), "status": result.get("status"),
+                       "task_id": r.get("task_id"), "worker": r.get("worker")}
+                code = r.get("code") or result.get("code")
+                if code:
+                    row["error"] = {"code": code, "message": r.get("reason") or result.get("reason", "")}
+                rows.append(row)
+        return rows
+
+    @staticmethod
+    def state(rec: JobRecord, steps: list[dict]) -> str:
+        if rec.cancelled:
+            return "cancelled"
+        if any(s["state"] == "failed" for s in steps):
+            return "failed"
+        if steps and all(s["state"] == "done" for s in steps):
+            return "succeeded"
+        if any(s["state"] != "pending" for s in steps if s["step"] != INGEST):
+            return "running"
+        return "queued"
+
+    def queue_position(self, rec: JobRecord) -> int:
+        """1 for the next job to start: queued jobs of every owner created before this one, plus one."""
+        ahead = 0
+        for other in self.all():
+            if other.id == rec.id:
+                break
+            if self.state(other, self.steps(other)) == "queued":
+                ahead += 1
+        return ahead + 1
+
+    # batches
+    def save_batch(self, batch_id: str, owner: str, job_ids: list[str]) -> None:
+        atomic_write_json(self.store.root / "batches" / f"{batch_id}.json",
+                          {"id": batch_id, "owner": owner, "created_at": now(), "jobs": job_ids})
+
+    def get_batch(self, batch_id: str) -> dict | None:
+        if not batch_id.isalnum():
+            return None
+        try:
+            return json.loads((self.store.root / "batches" / f"{batch_id}.json").read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            return None
+
+    # retention
+    def expire(self, days: float) -> list[str]:
+        """Remove jobs created more than ``days`` ago that are finished; returns their ids."""
+        limit = dt.datetime.now(dt.timezone.utc) - dt.timedelta(days=days)
+        gone = []
+        for rec in self.all():
+            if dt.datetime.fromisoformat(rec.created_at) < limit and self.state(rec, self.steps(rec)) in FINISHED:
+                self.store.purge(rec.id)
+                gone.append(rec.id)
+        return gone

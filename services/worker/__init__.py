@@ -1,0 +1,1 @@
+"""Runners for the pipeline's plan: Celery tasks on Redis (``celery_app``) or an in-process pool (``embedded``)."""

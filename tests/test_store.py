@@ -1,0 +1,77 @@
+"""Job folders, artifact names, retention and the plan: no broker, no worker."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+
+import pytest
+
+from kneemesh_core.pipeline import BUNDLE, INGEST, REPORT, JobOptions, bundle, plan
+from services.jobs import Jobs
+from services.store import FileStore
+
+
+def test_plan_stages_bones_before_cartilage():
+    stages = plan(JobOptions(bundle=True))
+    assert stages[0] == (INGEST,) and stages[-2:] == [(REPORT,), (BUNDLE,)]
+    assert set(stages[1]) == {"femur", "tibia", "patella"} and stages[1][0] == "femur"
+    assert len(stages[2]) == 4 and stages[2][0] == "femoral_cartilage"
+    assert plan(JobOptions(only="bones")) == [(INGEST,), ("femur", "tibia", "patella"), (REPORT,)]
+
+
+@pytest.fixture
+def job(tmp_path):
+    jobs = Jobs(FileStore(tmp_path / "root"))
+    rec = jobs.create("lab-a", "knee.nrrd", "labels", JobOptions(bundle=True))
+    out = jobs.out_dir(rec)
+    (out / "meshes").mkdir()
+    (out / "meshes" / "femur.vtp").write_bytes(b"femur")
+    (out / "report.json").write_text("{}")
+    (tmp_path / "secret.txt").write_text("not yours")
+    bundle(out)
+    return jobs, rec, tmp_path
+
+
+def test_artifact_names_cannot_escape_the_job_folder(job):
+    jobs, rec, tmp = job
+    store = jobs.store
+    assert store.locate(rec.id, "meshes/femur.vtp") == (jobs.out_dir(rec) / "meshes" / "femur.vtp").resolve()
+    for name in ("../record.json", "../../secret.txt", str(tmp / "secret.txt"), "/etc/passwd", "meshes/../../record.json",
+                 "steps/ingest.json", ""):
+        assert store.locate(rec.id, name) is None, name
+    # a listed name that became a link to elsewhere is still refused
+    target = jobs.out_dir(rec) / "meshes" / "femur.vtp"
+    target.unlink()
+    os.symlink(tmp / "secret.txt", target)
+    assert store.locate(rec.id, "meshes/femur.vtp") is None
+    # ids that are not ours lead nowhere
+    for bad in ("..", "../root", rec.id + "/..", rec.id.upper()):
+        assert store.job_dir(bad) is None and jobs.get(bad) is None
+
+
+def test_manifest_sizes_and_hashes(job):
+    jobs, rec, _ = job
+    listed = {a["name"]: a for a in jobs.store.artifacts(rec.id)}
+    assert set(listed) == {"meshes/femur.vtp", "report.json", "bundle.zip"}
+    assert listed["meshes/femur.vtp"]["size"] == 5
+    import hashlib
+
+    assert listed["meshes/femur.vtp"]["sha256"] == hashlib.sha256(b"femur").hexdigest()
+
+
+def test_jobs_never_share_folders_and_expire_only_when_finished(tmp_path):
+    jobs = Jobs(FileStore(tmp_path))
+    a = jobs.create("lab-a", "knee.nrrd", "labels", JobOptions())
+    b = jobs.create("lab-a", "knee.nrrd", "labels", JobOptions())
+    assert a.id != b.id and jobs.input_path(a) != jobs.input_path(b)
+    assert jobs.state(a, jobs.steps(a)) == "queued" and jobs.queue_position(b) == 2
+    old = (dt.datetime.now(dt.timezone.utc) - dt.timedelta(days=40)).isoformat()
+    a.created_at = b.created_at = old
+    b.cancelled = True
+    jobs.save(a)
+    jobs.save(b)
+    assert jobs.expire(30) == [b.id]  # a is still queued: kept whatever its age
+    assert jobs.get(b.id) is None and jobs.get(a.id) is not None
+    assert json.loads((tmp_path / "jobs" / a.id / "record.json").read_text())["owner"] == "lab-a"
