@@ -75,3 +75,17 @@ def test_jobs_never_share_folders_and_expire_only_when_finished(tmp_path):
     assert jobs.expire(30) == [b.id]  # a is still queued: kept whatever its age
     assert jobs.get(b.id) is None and jobs.get(a.id) is not None
     assert json.loads((tmp_path / "jobs" / a.id / "record.json").read_text())["owner"] == "lab-a"
+
+
+def test_cleanup_command_removes_expired_jobs(tmp_path):
+    import subprocess
+    import sys
+
+    jobs = Jobs(FileStore(tmp_path))
+    rec = jobs.create("lab-a", "knee.nrrd", "labels", JobOptions())
+    rec.cancelled = True
+    jobs.save(rec)
+    r = subprocess.run([sys.executable, "-m", "kneemesh", "cleanup", "--data-dir", str(tmp_path), "--older-than", "0"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "removed 1 job" in r.stdout, r.stderr
+    assert jobs.get(rec.id) is None
