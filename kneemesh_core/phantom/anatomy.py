@@ -151,11 +151,14 @@ def knee_fields(u, v, w, p: KneeParams, rng: np.random.Generator) -> dict[str, n
         return np.maximum.reduce([np.broadcast_to(c, femur.shape) for c in conds]).astype(np.float32)
 
     # cartilage shells on the articular regions
-    t_f = _thickness(p, uf, vf, wf, p.fc_mm, 0)
+    # femoral cartilage thins to nothing over 3 mm towards the intercondylar notch (whose walls carry
+    # the cruciate ligaments, not cartilage)
+    t_f = _thickness(p, uf, vf, wf, p.fc_mm, 0) * np.clip(notch / 3.0, 0.0, 1.0).astype(np.float32)
     t_t = _thickness(p, u, v, w, p.tc_mm, 1) + np.where(u > 0, np.float32(p.lateral_delta), np.float32(0))
     t_p = _thickness(p, uf, vf, wf, p.pc_mm, 2)
     condyles = region(wf - (w_c + 0.3 * R_m), np.abs(uf) - (u_c + 11.0 * s),
-                      -np.maximum(np.abs(uf) - 7.0 * s, vf - (v_c + 6)))
+                      # the condyles' inner faces (|u| = 7.5 s, rounded over 5 mm) face the notch: bare
+                      -np.maximum(np.abs(uf) - (7.5 * s + 2.0), vf - (v_c + 6)))
     trochlea = region((v_c + 0.25 * R_m) - vf, wf - (w_c + 0.75 * R_m), np.abs(uf) - 27 * s)
     fem_region = np.maximum(np.minimum(condyles, trochlea),
                             -np.maximum(vf - (v_c - 0.2 * R_m), (w_c + 0.2 * R_m) - wf))
