@@ -103,17 +103,20 @@ def mesh(
     element_size: float = typer.Option(1.0, "--element-size", help="Cartilage in-plane element edge, mm."),
     layers: int = typer.Option(4, "--layers", min=1, help="Cartilage element layers through the thickness."),
     workers: int = typer.Option(2, "--workers", min=1, help="Processes meshing tissues in parallel."),
+    no_blend: bool = typer.Option(False, "--no-blend", help="Keep the step at the cartilage edge (no blending or fusion)."),
+    blend_angle: float = typer.Option(45.0, "--blend-angle", min=20.0, max=80.0, help="Angle (deg) at which the blended cartilage edge meets the bone."),
 ):
     """Mesh a knee: closed bone shells (meshes/*.vtp), all-hex cartilage (meshes/*.vtu), report.json."""
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-    from kneemesh_core.hexmesh import HexOptions
+    from kneemesh_core.hexmesh import BlendOptions, HexOptions
     from kneemesh_core.pipeline import JobOptions, run
     from kneemesh_core.surfaces.tissue import SurfaceOptions
 
     opts = JobOptions(preset=preset, labels=labels, side=side, only=only, stl=stl,
                       surface=SurfaceOptions(bone_edge_mm=bone_edge),
-                      hex=HexOptions(element_size=element_size, layers=layers))
+                      hex=HexOptions(element_size=element_size, layers=layers),
+                      blend=None if no_blend else BlendOptions(angle_deg=blend_angle))
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=err,
                   transient=not err.is_terminal) as bar:
         tasks: dict[str, int] = {}

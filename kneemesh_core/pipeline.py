@@ -43,9 +43,9 @@ from kneemesh_core import __version__
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.io import read_label_map, write_image
 from kneemesh_core.knee import canonicalise, describe
-from kneemesh_core.hexmesh import HexOptions, mesh_cartilage
+from kneemesh_core.hexmesh import BlendOptions, HexOptions, blend_cartilage, mesh_cartilage
 from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct
-from kneemesh_core.tissues import BONES, CARTILAGES, TISSUES, resolve_convention
+from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, TISSUES, resolve_convention
 
 LABELS_FILE = "labels.nrrd"
 JOB_FILE = "job.json"
@@ -77,6 +77,7 @@ class JobOptions:
     bundle: bool = False
     surface: SurfaceOptions = SurfaceOptions()
     hex: HexOptions = HexOptions()
+    blend: BlendOptions | None = BlendOptions()  # None: keep the step at the cartilage edge
 
     def tissues(self) -> tuple[str, ...]:
         if self.only not in GROUPS:
@@ -91,6 +92,8 @@ class JobOptions:
         d = dict(d)
         d["surface"] = SurfaceOptions(**d.get("surface", {}))
         d["hex"] = HexOptions(**d.get("hex", {}))
+        if "blend" in d:
+            d["blend"] = None if d["blend"] is None else BlendOptions(**d["blend"])
         return cls(**d)
 
 
@@ -147,8 +150,11 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
             entry = {"status": "ok", **facts}
         else:
             cm = mesh_cartilage(labels, tissue, opts.hex)
+            ok = cm.facts["gate_passed"]
+            if ok and opts.blend is not None:  # the bone stage ran first: fuse onto the bone mesh it wrote
+                bone_file = folder / f"{BONE_OF[tissue]}.vtp"
+                cm = blend_cartilage(cm, pv.read(bone_file) if bone_file.exists() else None, opts.blend)
             facts = cm.facts
-            ok = facts["gate_passed"]
             (out / "surfaces").mkdir(exist_ok=True)
             files = [folder / f"{tissue}{'' if ok else '.rejected'}.vtu", out / "surfaces" / f"{tissue}.vtp"]
             _atomic_save_mesh(cm.grid(), files[0])

@@ -35,13 +35,38 @@ def topology(surf: pv.PolyData) -> dict:
     return {"watertight": watertight, "manifold": manifold, "self_intersections": n_int}
 
 
-def distance_to_surface(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
-    """Unsigned distance (mm) of each point (N, 3) to the nearest point of ``surface``."""
+def crossing_edges(surf: pv.PolyData) -> int:
+    """Edges of a triangle surface that pass through a triangle they do not belong to (a
+    self-intersection always has one), by casting every edge as an Embree ray. Used for
+    hexahedral boundaries, where counts of intersecting triangles from pymeshfix also flag
+    vertices that merely touch."""
+    import trimesh
+
+    f = surf.faces.reshape(-1, 4)[:, 1:]
+    e = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    p = np.asarray(surf.points, float)
+    vec = p[e[:, 1]] - p[e[:, 0]]
+    length = np.linalg.norm(vec, axis=1)
+    tm = trimesh.Trimesh(p, f, process=False)
+    tri, ray, loc = tm.ray.intersects_id(p[e[:, 0]], vec / length[:, None], multiple_hits=True, return_locations=True)
+    along = np.linalg.norm(loc - p[e[ray, 0]], axis=1)
+    inside = (along > 1e-6 * length[ray]) & (along < length[ray] * (1 - 1e-6))
+    own = (f[tri] == e[ray, 0:1]).any(1) | (f[tri] == e[ray, 1:2]).any(1)
+    return int(len(np.unique(ray[inside & ~own])))
+
+
+def signed_distance(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
+    """Signed distance (mm) of each point (N, 3) to a closed ``surface``: negative inside."""
     f = vtk.vtkImplicitPolyDataDistance()
     f.SetInput(surface)
     out = vtk.vtkDoubleArray()
     f.FunctionValue(numpy_to_vtk(np.ascontiguousarray(points, dtype=float), deep=True), out)
-    return np.abs(vtk_to_numpy(out))
+    return vtk_to_numpy(out).copy()
+
+
+def distance_to_surface(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
+    """Unsigned distance (mm) of each point (N, 3) to the nearest point of ``surface``."""
+    return np.abs(signed_distance(points, surface))
 
 
 def surface_distance(mesh: pv.PolyData, reference: pv.PolyData, max_points: int = 30000, seed: int = 0) -> dict:

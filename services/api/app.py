@@ -30,7 +30,7 @@ from starlette.concurrency import run_in_threadpool
 
 from kneemesh_core import KneeMeshError, __version__
 from kneemesh_core.pipeline import BUNDLE_FILE, INGEST, JobOptions, run_step
-from kneemesh_core.hexmesh import HexOptions
+from kneemesh_core.hexmesh import BlendOptions, HexOptions
 from services.api import schemas
 from services.api.limits import TOO_LARGE, BodySizeLimit
 from services.api.metrics import Metrics
@@ -65,9 +65,10 @@ def form_options(
     only: Annotated[Literal["all", "bones", "cartilage"], Form(description="Tissues to mesh.")] = "all",
     element_size: Annotated[float, Form(gt=0.2, le=5.0, description="Cartilage in-plane element edge, mm.")] = 1.0,
     layers: Annotated[int, Form(ge=1, le=12, description="Cartilage element layers through the thickness.")] = 4,
+    blend: Annotated[bool, Form(description="Blend the cartilage edge into the bone and fuse it onto the bone.")] = True,
 ) -> schemas.Options:
     return schemas.Options(input_type=input_type, preset=preset or None, side=side, only=only,
-                           element_size=element_size, layers=layers)
+                           element_size=element_size, layers=layers, blend=blend)
 
 
 def create_app(settings: Settings | None = None, runner=None) -> FastAPI:
@@ -178,7 +179,8 @@ def create_app(settings: Settings | None = None, runner=None) -> FastAPI:
                            "upload a label map (input_type=labels).")
         name = safe_filename(upload.filename)
         options = JobOptions(preset=opts.preset, side=opts.side, only=opts.only, bundle=True,
-                             hex=HexOptions(element_size=opts.element_size, layers=opts.layers))
+                             hex=HexOptions(element_size=opts.element_size, layers=opts.layers),
+                             blend=BlendOptions() if opts.blend else None)
         rec = jobs.create(who, name, opts.input_type, options, batch_id)
         try:
             with open(jobs.input_path(rec), "wb") as fh:  # the upload is spooled to disk; copy it in chunks

@@ -1,0 +1,386 @@
+"""Blend the cartilage edge into the bone, and fuse the bone side onto the bone surface.
+
+A swept mesh ends in a step against the bone; in dynamic FE runs the articulating
+edges catch on it (Gibbons et al. 2022, section 2.4.2). This step works on the
+columns of a finished :class:`.extrude.HexMesh`:
+
+1. **Fuse**: every bone-side node moves to its nearest point on the bone surface
+   (the bone mesh the job writes, so an FE tie finds the nodes on it) wherever
+   the elements around it stay valid; nodes more than ``fuse_max_mm`` from the
+   bone stay where they are.
+2. **Blend**: within ``rings`` rings of the edge the bone side reaches out along
+   the bone (``bone_share`` of the run of a slope at ``angle_deg`` over the edge
+   thickness, graded to nothing at ring ``rings``; feet march over the bone so a
+   foot pushed over a rim follows it down, and each column rolls with the bone
+   under it), and the articular surface comes down to the bone at ``angle_deg``:
+   each column is capped at ``edge_height`` of its thickness plus its distance
+   to the edge times tan(angle). The paper instead slants the edge columns
+   and smooths in advancing fronts; slanting shears every layer of the edge
+   elements (their scaled Jacobian cannot exceed sin(angle), ~0.7, and on
+   real knees half fell below 0.5), while a tapered top tilts mainly the top
+   layer, and leaning the tapered columns outwards by half the local slope
+   splits that tilt between each element's bottom and top corners.
+3. **Back off** where an element falls below its floor (``edge_floor`` in the
+   outermost ring, 0.5 beyond): those columns and their neighbours lose 30 % of
+   their displacement at a time, and the last rounds give them up entirely.
+   Runs are first capped at 0.4 of the clearance to the nearest
+   non-neighbouring edge node, so edges facing each other across a hole or a
+   narrow neck never meet.
+
+Interior layers are re-interpolated along the straight columns after each move.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pyvista as pv
+from scipy.spatial import cKDTree
+
+from kneemesh_core.hexmesh.extrude import HexMesh
+from kneemesh_core.hexmesh.quality import hex_quality
+from kneemesh_core.surfaces.metrics import signed_distance
+
+#: Bone-side nodes this close to the bone count as fused, mm.
+FUSED_TOL_MM = 0.05
+
+
+@dataclasses.dataclass(frozen=True)
+class BlendOptions:
+    angle_deg: float = 45.0
+    bone_share: float = 0.8
+    rings: int = 3
+    edge_height: float = 0.3
+    edge_floor: float = 0.5
+    fuse_max_mm: float = 1.5
+    max_backoffs: int = 10
+    backoffs_per_column: int = 5
+
+
+def _layer0_quads(hm: HexMesh) -> np.ndarray:
+    return hm.hexes[hm.layer == 0][:, :4]
+
+
+def _edges(quads: np.ndarray) -> np.ndarray:
+    e = np.sort(np.concatenate([quads[:, [0, 1]], quads[:, [1, 2]], quads[:, [2, 3]], quads[:, [3, 0]]]), axis=1)
+    return np.unique(e, axis=0)
+
+
+def node_rings(quads: np.ndarray, edge: np.ndarray) -> np.ndarray:
+    """Graph distance (P,) of every bone-side node from the cartilage edge over the quad edges."""
+    e = _edges(quads)
+    ring = np.where(edge, 0, np.iinfo(np.int32).max).astype(np.int64)
+    frontier = edge.copy()
+    r = 0
+    while frontier.any():
+        r += 1
+        nxt = np.zeros_like(frontier)
+        for a, b in ((0, 1), (1, 0)):
+            hit = frontier[e[:, a]] & (ring[e[:, b]] > r)
+            nxt[e[hit, b]] = True
+        ring[nxt] = r
+        frontier = nxt
+    return ring
+
+
+def _columns(hm: HexMesh) -> tuple[int, int]:
+    """(nodes per layer P, layers L)."""
+    L = int(hm.node_layer.max())
+    return len(hm.points) // (L + 1), L
+
+
+def _restack(bone: np.ndarray, top: np.ndarray, L: int) -> np.ndarray:
+    t = np.arange(L + 1)[:, None, None] / L
+    return (bone[None] + t * (top - bone)[None]).reshape(-1, 3)
+
+
+def _tangent(v: np.ndarray, n: np.ndarray) -> np.ndarray:
+    t = v - (v * n).sum(1, keepdims=True) * n
+    return t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+
+
+def _outward(bone: np.ndarray, normal: np.ndarray, ring: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Unit outward directions (P, 3) in the bone's tangent plane: at the edge, away from the
+    interior neighbours; inwards, the mean of the next-outer ring's directions."""
+    P = len(bone)
+    out = np.zeros((P, 3))
+    acc = np.zeros((P, 3))
+    cnt = np.zeros(P)
+    for a, b in ((0, 1), (1, 0)):  # edge node a, inner neighbour b
+        m = (ring[e[:, a]] == 0) & (ring[e[:, b]] == 1)
+        np.add.at(acc, e[m, a], bone[e[m, a]] - bone[e[m, b]])
+        np.add.at(cnt, e[m, a], 1)
+        m = (ring[e[:, a]] == 0) & (ring[e[:, b]] == 0)  # along the loop: a fallback for corner nodes
+        np.add.at(acc, e[m, a], 1e-3 * (bone[e[m, a]] - bone[e[m, b]]))
+    out[ring == 0] = acc[ring == 0]
+    out = _tangent(out, normal)
+    for r in range(1, int(ring[ring < 10**6].max(initial=0)) + 1):
+        acc[:] = 0
+        cnt[:] = 0
+        for a, b in ((0, 1), (1, 0)):
+            m = (ring[e[:, a]] == r) & (ring[e[:, b]] == r - 1)
+            np.add.at(acc, e[m, a], out[e[m, b]])
+            np.add.at(cnt, e[m, a], 1)
+        sel = ring == r
+        out[sel] = _tangent(acc[sel], normal[sel])
+    return out
+
+
+def _propagate(values: np.ndarray, ring: np.ndarray, e: np.ndarray, depth: int) -> np.ndarray:
+    """Carry the edge nodes' values (P,) inwards ring by ring (mean of the outer neighbours)."""
+    v = np.where(ring == 0, values, 0.0).astype(float)
+    for r in range(1, depth + 1):
+        acc = np.zeros(len(v))
+        cnt = np.zeros(len(v))
+        for a, b in ((0, 1), (1, 0)):
+            m = (ring[e[:, a]] == r) & (ring[e[:, b]] == r - 1)
+            np.add.at(acc, e[m, a], v[e[m, b]])
+            np.add.at(cnt, e[m, a], 1)
+        sel = (ring == r) & (cnt > 0)
+        v[sel] = acc[sel] / cnt[sel]
+    return v
+
+
+def _clearance(bone: np.ndarray, edge_ids: np.ndarray, e: np.ndarray, hops: int = 6) -> np.ndarray:
+    """Distance (mm) from each edge node to the nearest edge node more than ``hops`` steps
+    away along the edge loops (the other side of a hole or of a narrow neck)."""
+    loop_edges = e[np.isin(e[:, 0], edge_ids) & np.isin(e[:, 1], edge_ids)]
+    index = {n: i for i, n in enumerate(edge_ids)}
+    adj = [[] for _ in edge_ids]
+    for a, b in loop_edges:
+        adj[index[a]].append(index[b])
+        adj[index[b]].append(index[a])
+    near = [set() for _ in edge_ids]  # nodes within `hops` along the loop
+    for i in range(len(edge_ids)):
+        seen, frontier = {i}, [i]
+        for _ in range(hops):
+            frontier = [k for j in frontier for k in adj[j] if k not in seen]
+            seen.update(frontier)
+        near[i] = seen
+    pts = bone[edge_ids]
+    k = min(len(edge_ids), 4 * hops + 8)
+    dist, idx = cKDTree(pts).query(pts, k=k)
+    out = np.full(len(edge_ids), np.inf)
+    for i in range(len(edge_ids)):
+        for d, j in zip(dist[i], idx[i]):
+            if j not in near[i]:
+                out[i] = d
+                break
+    return out
+
+
+def _floors(ring_elem: np.ndarray, edge_floor: float) -> np.ndarray:
+    """The scaled Jacobian each element must keep after blending: ``edge_floor`` in the outermost
+    ring, 0.5 beyond."""
+    return np.where(ring_elem == 0, edge_floor, 0.5)
+
+
+def _closest(surface: pv.PolyData, pts: np.ndarray) -> np.ndarray:
+    """Nearest points (N, 3) on a surface."""
+    _, closest = surface.find_closest_cell(pts, return_closest_point=True)
+    return np.asarray(closest)
+
+
+class _Bone:
+    """A closed bone surface: nearest points on it, and a normal field that varies smoothly
+    (vertex normals blended over ~2 mm: cell normals jump at every edge of a 3 mm mesh)."""
+
+    def __init__(self, surface: pv.PolyData, sigma_mm: float = 2.0):
+        self.surface = surface.compute_normals(cell_normals=False, point_normals=True, auto_orient_normals=True)
+        self.tree = cKDTree(self.surface.points)
+        self.normals = np.asarray(self.surface.point_data["Normals"])
+        self.sigma = sigma_mm
+
+    def closest(self, pts: np.ndarray) -> np.ndarray:
+        return _closest(self.surface, pts)
+
+    def slide(self, pts: np.ndarray, disp: np.ndarray, steps: int = 4) -> np.ndarray:
+        """March points over the surface by ``disp`` (N, 3) in ``steps`` tangent steps, so a foot
+        pushed over a rim follows the bone down instead of snapping back to the rim."""
+        length = np.linalg.norm(disp, axis=1, keepdims=True)
+        direction = disp / np.maximum(length, 1e-12)
+        for _ in range(steps):
+            direction = _tangent(direction, self.normal(pts))
+            pts = self.closest(pts + direction * length / steps)
+        return pts
+
+    def normal(self, pts: np.ndarray) -> np.ndarray:
+        d, i = self.tree.query(pts, k=8)
+        w = np.exp(-0.5 * (d / self.sigma) ** 2)[..., None]
+        n = (self.normals[i] * w).sum(1)
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def _rotate(v: np.ndarray, n_from: np.ndarray, n_to: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` rotated by the smallest rotation taking unit ``n_from`` to unit ``n_to`` (Rodrigues)."""
+    k = np.cross(n_from, n_to)
+    c = (n_from * n_to).sum(1, keepdims=True)
+    return v * c + np.cross(k, v) + k * (k * v).sum(1, keepdims=True) / np.maximum(1.0 + c, 1e-9)
+
+
+def _bad_columns(hexes: np.ndarray, points: np.ndarray, floor: np.ndarray, P: int) -> np.ndarray:
+    """Columns (P,) with a node in an element (of ``hexes``, each with its ``floor``) below its floor."""
+    q = hex_quality(points, hexes)
+    bad = (q["scaled_jacobian"] < floor) | q["collapsed"]
+    cols = np.zeros(P, bool)
+    cols[np.unique(hexes[bad] % P)] = True
+    return cols
+
+
+def fuse(hm: HexMesh, bone: "_Bone", opts: BlendOptions = BlendOptions()) -> tuple[HexMesh, np.ndarray]:
+    """Move bone-side nodes onto the bone where the elements allow; returns the mesh and the fused mask (P,)."""
+    P, L = _columns(hm)
+    b, a = hm.points[:P], hm.points[L * P:]
+    target = bone.closest(b)
+    move = np.linalg.norm(target - b, axis=1) <= opts.fuse_max_mm
+    # the outermost ring may drop to 0.2 (blending then keeps it at its edge floor or gives up there); the rest keeps 0.5
+    floor = np.where(hm.ring == 0, 0.2, np.minimum(hex_quality(hm.points, hm.hexes)["scaled_jacobian"], 0.5))
+    move = _accept(hm, b, a, target, move, floor, opts.max_backoffs)
+    # a bone-side node left inside the bone must still come out: accept down to 0.2 for it
+    inside = ~move & (signed_distance(b, bone.surface) < -FUSED_TOL_MM)
+    if inside.any():
+        move = _accept(hm, b, a, target, move | inside, np.minimum(floor, 0.2), opts.max_backoffs, fixed=move)
+    pts = _restack(np.where(move[:, None], target, b), a, L)
+    return dataclasses.replace(hm, points=pts), move
+
+
+def _accept(hm: HexMesh, b, a, target, move, floor, rounds: int, fixed=None) -> np.ndarray:
+    """The nodes (P,) whose moves to ``target`` keep every element at its floor: offending moves
+    are dropped round by round (``fixed`` ones never)."""
+    P, L = len(b), int(hm.node_layer.max())
+    for _ in range(rounds):
+        pts = _restack(np.where(move[:, None], target, b), a, L)
+        bad = _bad_columns(hm.hexes, pts, floor, P) & move
+        if fixed is not None:
+            bad &= ~fixed
+        if not bad.any():
+            break
+        move = move & ~bad
+    return move
+
+
+def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptions()) -> tuple[HexMesh, dict]:
+    """Fuse (when a bone surface is given) and blend; returns the new mesh and the ``blend`` report."""
+    P, L = _columns(hm)
+    facts: dict = {"applied": False, "angle_target_deg": opts.angle_deg}
+    fused = np.zeros(P, bool)
+    if bone is not None:
+        bone = _Bone(bone)
+        hm, fused = fuse(hm, bone, opts)
+    quads = _layer0_quads(hm)
+    e = _edges(quads)
+    ring = node_rings(quads, hm.node_edge[:P])
+    b, a = hm.points[:P].copy(), hm.points[L * P:].copy()
+    column = a - b
+    normal = _bone_normals(b, quads, column)
+    out = _outward(b, normal, ring, e)
+    height = (column * normal).sum(1)  # thickness along the bone normal
+    # how far the bone side reaches out: the run of a slope at the angle over the edge thickness
+    run = height / np.tan(np.radians(opts.angle_deg))
+    edge_ids = np.flatnonzero(ring == 0)
+    run[edge_ids] = np.minimum(run[edge_ids], 0.4 * _clearance(b, edge_ids, e))
+    run = _propagate(run, ring, e, opts.rings)
+    weight = np.clip(1.0 - ring / opts.rings, 0.0, 1.0)
+    disp = run * weight
+    floor = _floors(hm.ring, opts.edge_floor)
+    n_foot = bone.normal(b) if bone is not None else normal
+    tan = np.tan(np.radians(opts.angle_deg))
+    zone = (ring < opts.rings) & (disp > 0)
+    moving = zone[hm.hexes % P].any(1)  # only these elements can change
+    hexes, cols = hm.hexes[moving], np.flatnonzero(zone)
+    signed = (lambda x: signed_distance(x, bone.surface)) if bone is not None else None
+
+    def place(scale: np.ndarray) -> np.ndarray:
+        d = (disp * scale)[:, None] * out
+        new_b = b + opts.bone_share * d
+        new_col = column.copy()
+        slide = fused & zone  # fused feet slide along the bone, the others along their tangent plane
+        if slide.any():  # the column rolls with the bone as its foot slides over it
+            new_b[slide] = bone.slide(b[slide], opts.bone_share * d[slide])
+            new_col[slide] = _rotate(column[slide], n_foot[slide], bone.normal(new_b[slide]))
+        # the articular surface comes down to the bone at the angle: thickness capped by the distance to the edge
+        s = cKDTree(new_b[edge_ids]).query(new_b)[0]
+        cap = height * opts.edge_height + s * tan
+        shrink = np.where(zone, np.minimum(1.0, (1 - scale) + scale * cap / np.maximum(height, 1e-9)), 1.0)
+        new_col *= shrink[:, None]
+        # lean the tapered columns outwards by half the local slope: the corners of an element under
+        # a sloping top then split the slope between its bottom and its top (67.5/112.5 deg, not 45/135)
+        slope = np.radians(opts.angle_deg) * np.clip((height - cap) / np.maximum(height * (1 - opts.edge_height), 1e-9), 0, 1)
+        lean = np.where(zone, scale * np.tan(slope / 2), 0.0) * np.linalg.norm(new_col, axis=1)
+        new_col += lean[:, None] * _tangent(out, bone.normal(new_b) if bone is not None else normal)
+        return _restack(new_b, new_b + new_col, L)
+
+    def offending(pts: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        bad = _bad_columns(hexes, pts, floor[moving], P)
+        if signed is not None:  # no node of a blended column may end up inside the bone
+            above = pts.reshape(L + 1, P, 3)[1:, cols].reshape(-1, 3)
+            inside = (signed(above) < -FUSED_TOL_MM).reshape(L, -1).any(0)
+            bad[cols[inside]] = True
+        return bad & (scale > 0) & zone
+
+    scale = np.ones(P)
+    tries = np.zeros(P, int)
+    backoffs = 0
+    for backoffs in range(1, opts.max_backoffs + 1):
+        pts = place(scale)
+        bad = offending(pts, scale)
+        if not bad.any():
+            break
+        # back off the offending columns and their neighbours; a column backed off often is given up
+        grow = bad.copy()
+        for x, y in ((0, 1), (1, 0)):
+            grow[e[bad[e[:, x]], y]] = True
+        tries[grow] += 1
+        scale[grow] = np.where(tries[grow] >= opts.backoffs_per_column, 0.0, 0.7 * scale[grow])
+    else:
+        pts = place(scale)
+        while (bad := offending(pts, scale)).any():  # whatever still offends keeps its unblended column
+            scale[bad] = 0.0
+            pts = place(scale)
+    out_hm = dataclasses.replace(hm, points=pts)
+    reached = _edge_angles(out_hm, ring, P, L)
+    b_final = out_hm.points[:P]
+    fused_now = np.zeros(P, bool) if bone is None else np.linalg.norm(bone.closest(b_final) - b_final, axis=1) <= FUSED_TOL_MM
+    edge = ring == 0
+    facts.update({
+        "applied": bool(scale[edge].max(initial=0) > 0),
+        "angle_reached_deg": {"median": round(float(np.median(reached)), 1), "p95": round(float(np.percentile(reached, 95)), 1)},
+        "edge_displacement_mm": {"median": round(float(np.median(disp[edge] * scale[edge])), 3),
+                                 "max": round(float((disp[edge] * scale[edge]).max(initial=0)), 3)},
+        "reductions": int(backoffs),
+        "columns_reduced": int((scale < 1).sum()),
+        "fused_fraction": round(float(fused_now.mean()), 4),
+        "fusion": "none" if bone is None or not fused_now.any() else "full" if fused_now.all()
+        else "perimeter" if fused_now[edge].all() else "partial",
+    })
+    return out_hm, facts
+
+
+def _bone_normals(b: np.ndarray, quads: np.ndarray, column: np.ndarray) -> np.ndarray:
+    """Unit normals (P, 3) of the bone-side quad surface at its nodes, towards the articular side."""
+    n = np.zeros((len(b), 3))
+    fn = np.cross(b[quads[:, 2]] - b[quads[:, 0]], b[quads[:, 3]] - b[quads[:, 1]])
+    for k in range(4):
+        np.add.at(n, quads[:, k], fn)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return n * np.sign((n * column).sum(1, keepdims=True) + 1e-12)
+
+
+def _edge_angles(hm: HexMesh, ring: np.ndarray, P: int, L: int) -> np.ndarray:
+    """Angle (deg) at which the cartilage edge meets the bone, per edge node: the slope, against the
+    bone's tangent plane, of the line from the edge's bone-side node to the articular node of its
+    inner neighbour (90 = a vertical step one element wide)."""
+    b, a = hm.points[:P], hm.points[L * P:]
+    quads = _layer0_quads(hm)
+    n = _bone_normals(b, quads, a - b)
+    e = _edges(quads)
+    inner = np.full(P, -1)
+    for x, y in ((0, 1), (1, 0)):
+        m = (ring[e[:, x]] == 0) & (ring[e[:, y]] == 1)
+        inner[e[m, x]] = e[m, y]
+    edge = np.flatnonzero((ring == 0) & (inner >= 0))
+    v = a[inner[edge]] - b[edge]
+    rise = (v * n[edge]).sum(1)
+    run = np.linalg.norm(v - rise[:, None] * n[edge], axis=1)
+    return np.degrees(np.arctan2(rise, run))

@@ -1,0 +1,79 @@
+"""Edge blending and bone fusion on real knees: the edge angle, fusion and the quality after blending."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from conftest import OAI, PYMSKT_RIGHT, real
+from kneemesh_core.hexmesh import BlendOptions, HexOptions, blend_cartilage, mesh_cartilage
+from kneemesh_core.knee import load_knee
+from kneemesh_core.pipeline import JobOptions
+from kneemesh_core.surfaces.metrics import crossing_edges, signed_distance
+from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct
+from kneemesh_core.tissues import BONE_OF
+
+CASES = {
+    "right_pymskt_medial_tibial": (PYMSKT_RIGHT, "medial_tibial_cartilage"),
+    "full_thickness_defect_patellar": (OAI / "OAI_AKOA_9057479_00m.nii.gz", "patellar_cartilage"),
+    "lesion_labels_lateral_tibial": (OAI / "OAI_AKOA_9135902_00m.nii.gz", "lateral_tibial_cartilage"),
+}
+
+
+@pytest.fixture(scope="module", params=list(CASES))
+def blended(request):
+    path, tissue = CASES[request.param]
+    knee = load_knee(real(path))
+    cm = mesh_cartilage(knee.labels, tissue, HexOptions())
+    assert cm.facts["gate_passed"]
+    bone = reconstruct(knee.labels, BONE_OF[tissue], SurfaceOptions())[0]
+    return request.param, cm, blend_cartilage(cm, bone), bone
+
+
+def test_blend_meets_quality_targets(blended):
+    name, raw, cm, bone = blended
+    b = cm.facts["blend"]
+    assert b["applied"] and b["passed"], b
+    sj = cm.quality["scaled_jacobian"]
+    assert sj.min() >= 0.2 and (sj >= 0.5).mean() >= 0.99
+    assert sj[cm.mesh.ring >= 2].min() >= 0.5  # beyond the two outer rings nothing drops below 0.5
+    assert b["inverted"] == 0 and b["collapsed"] == 0
+    outer = pv.UnstructuredGrid({pv.CellType.HEXAHEDRON: cm.mesh.hexes}, cm.mesh.points).extract_surface().triangulate()
+    assert crossing_edges(outer) == 0
+    assert signed_distance(cm.mesh.points, bone).min() >= -0.05  # nothing inside the bone
+    if "defect" in name:
+        assert cm.facts["defect_holes"] >= 1  # the holes are blended too and stay holes
+
+
+def test_edge_meets_bone_near_the_angle_and_is_fused(blended):
+    name, raw, cm, bone = blended
+    b = cm.facts["blend"]
+    assert 35 <= b["angle_reached_deg"]["median"] <= 55, b["angle_reached_deg"]
+    assert cm.facts["fused_fraction"] >= 0.95
+    P = len(cm.mesh.points) // (cm.mesh.node_layer.max() + 1)
+    d = np.abs(signed_distance(cm.mesh.points[:P], bone))
+    assert np.mean(d <= 0.05) == pytest.approx(cm.facts["fused_fraction"], abs=0.01)
+    # the unblended mesh was steeper at its edge: blending changed the geometry there, not inside
+    moved = np.linalg.norm(cm.mesh.points - raw.mesh.points, axis=1)
+    deep = np.isin(np.arange(len(moved)) % P, np.unique(raw.mesh.hexes[raw.mesh.ring >= 4] % P))
+    assert moved[~deep].max() > 0.3 and np.median(moved[deep]) < 0.1
+
+
+def test_blend_without_a_bone_keeps_the_bone_side_and_says_so():
+    knee = load_knee(real(PYMSKT_RIGHT))
+    cm = mesh_cartilage(knee.labels, "medial_tibial_cartilage", HexOptions())
+    out = blend_cartilage(cm, None, BlendOptions())
+    assert out.facts["fused_fraction"] == 0.0 and "no bone" in out.facts["blend"]["reason"]
+    assert out.facts["blend"]["passed"] and out.quality["scaled_jacobian"].min() >= 0.2
+
+
+def test_crossing_edges_finds_overlaps():
+    cube = pv.Cube().triangulate()
+    assert crossing_edges(cube) == 0 and crossing_edges(pv.Sphere()) == 0
+    assert crossing_edges(cube.merge(pv.Cube(center=(0.5, 0.3, 0.2)).triangulate(), merge_points=False)) > 0
+
+
+def test_no_blend_option_round_trips():
+    assert JobOptions.from_dict(JobOptions(blend=None).to_dict()).blend is None
+    assert JobOptions.from_dict(JobOptions().to_dict()).blend == BlendOptions()
