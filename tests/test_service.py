@@ -93,7 +93,9 @@ def test_label_map_job_runs_every_tissue_as_its_own_celery_task(stack):
     assert report["summary"]["failed"] == [] and report["input"]["side"] == "right"
     hexes = pv.read(stack.data / "jobs" / job["id"] / "out" / "meshes" / "medial_tibial_cartilage.vtu")
     assert hexes.n_cells > 500 and set(np.unique(hexes.celltypes)) == {pv.CellType.HEXAHEDRON}
-    assert hexes["scaled_jacobian"].min() >= 0.5
+    blend = report["tissues"]["medial_tibial_cartilage"]["blend"]  # fused onto the bone the job meshed first
+    assert blend["passed"] and report["tissues"]["medial_tibial_cartilage"]["fused_fraction"] > 0.9
+    assert hexes["scaled_jacobian"].min() >= 0.2 and (hexes["scaled_jacobian"] >= 0.5).mean() >= 0.99
 
 
 def test_worker_killed_mid_job_loses_nothing(stack):
