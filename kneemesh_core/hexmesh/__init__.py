@@ -235,7 +235,8 @@ def blend_cartilage(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOpti
     sj = q["scaled_jacobian"]
     inner = hm.ring >= 2
     outer = to_grid(hm.points, hm.hexes).extract_surface().triangulate()
-    penetration = None if bone is None else round(float(max(0.0, -signed_distance(hm.points, bone).min())), 4)
+    depth = (lambda pts: round(float(max(0.0, -signed_distance(pts, bone).min())), 4)) if bone is not None else None
+    penetration = depth(hm.points) if depth else None
     checks = {
         "min_scaled_jacobian": s["min_scaled_jacobian"],
         "frac_sj_at_least_0_5": round(float((sj >= 0.5).mean()), 6),
@@ -246,18 +247,25 @@ def blend_cartilage(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOpti
         "self_intersections": crossing_edges(outer),
         "bone_penetration_mm": penetration,
     }
-    passed = (checks["min_scaled_jacobian"] >= BLEND_MIN_SJ and checks["frac_sj_at_least_0_5"] >= BLEND_FRAC_GOOD
-              and (checks["min_scaled_jacobian_beyond_ring_1"] or 1.0) >= 0.5 and not s["inverted"]
-              and not s["collapsed"] and not checks["self_intersections"]
-              and (penetration is None or penetration <= BLEND_PENETRATION_MM))
-    report = {**done, **checks, "passed": bool(passed), "seconds": round(time.perf_counter() - t0, 3)}
+    quality_ok = (checks["min_scaled_jacobian"] >= BLEND_MIN_SJ and checks["frac_sj_at_least_0_5"] >= BLEND_FRAC_GOOD
+                  and (checks["min_scaled_jacobian_beyond_ring_1"] or 1.0) >= 0.5 and not s["inverted"]
+                  and not s["collapsed"] and not checks["self_intersections"])
+    before = depth(cm.mesh.points) if depth else None
+    report = {**done, **checks, "bone_penetration_unblended_mm": before,
+              "passed": bool(quality_ok and (penetration is None or penetration <= BLEND_PENETRATION_MM)),
+              "seconds": round(time.perf_counter() - t0, 3)}
     fused = report.pop("fused_fraction")
     if bone is None:
         report["reason"] = "no bone surface: blended without fusion"
-    if not passed:
+    # a blend that keeps the quality is kept even where some node stays inside the bone, as long as
+    # it is no deeper than before: the unblended mesh would be the worse of the two
+    if not quality_ok or (penetration is not None and penetration > max(BLEND_PENETRATION_MM, before)):
         report["applied"] = False
-        report["reason"] = "blended mesh missed the targets; the unblended mesh is kept"
+        report["reason"] = "blended mesh missed the quality targets; the unblended mesh is kept"
         return dataclasses.replace(cm, facts={**cm.facts, "fused_fraction": 0.0, "blend": report})
+    if not report["passed"]:
+        report["reason"] = (f"nodes up to {penetration} mm inside the bone remain (unblended: {before} mm): "
+                            "the bone mesh and the cartilage labels disagree there")
     return CartilageMesh(hm, q, {**cm.facts, "fused_fraction": fused, "blend": report}, cm.surface)
 
 

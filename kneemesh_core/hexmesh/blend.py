@@ -237,10 +237,11 @@ def fuse(hm: HexMesh, bone: "_Bone", opts: BlendOptions = BlendOptions()) -> tup
     # the outermost ring may drop to 0.2 (blending then keeps it at its edge floor or gives up there); the rest keeps 0.5
     floor = np.where(hm.ring == 0, 0.2, np.minimum(hex_quality(hm.points, hm.hexes)["scaled_jacobian"], 0.5))
     move = _accept(hm, b, a, target, move, floor, opts.max_backoffs)
-    # a bone-side node left inside the bone must still come out: accept down to 0.2 for it
+    # a bone-side node left inside the bone should still come out: its outer two rings may drop to 0.2
     inside = ~move & (signed_distance(b, bone.surface) < -FUSED_TOL_MM)
     if inside.any():
-        move = _accept(hm, b, a, target, move | inside, np.minimum(floor, 0.2), opts.max_backoffs, fixed=move)
+        move = _accept(hm, b, a, target, move | inside, np.where(hm.ring <= 1, 0.2, floor), opts.max_backoffs,
+                       fixed=move)
     pts = _restack(np.where(move[:, None], target, b), a, L)
     return dataclasses.replace(hm, points=pts), move
 
