@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import json
+import time
 import uuid
 from pathlib import Path
 
@@ -27,6 +28,16 @@ def now() -> str:
     return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
+_last_ns = 0
+
+
+def _next_ns() -> int:
+    """Wall-clock nanoseconds, strictly increasing within this process."""
+    global _last_ns
+    _last_ns = max(time.time_ns(), _last_ns + 1)
+    return _last_ns
+
+
 @dataclasses.dataclass
 class JobRecord:
     id: str
@@ -38,6 +49,7 @@ class JobRecord:
     batch_id: str | None = None
     cancelled: bool = False
     deleted: bool = False
+    created_ns: int = 0  # submission order (created_at ties within a millisecond)
 
 
 def _kind(step: str) -> str:
@@ -53,7 +65,8 @@ class Jobs:
     # records
     def create(self, owner: str, input_name: str, input_type: str, options: JobOptions,
                batch_id: str | None = None) -> JobRecord:
-        rec = JobRecord(uuid.uuid4().hex, owner, now(), input_name, input_type, options.to_dict(), batch_id)
+        rec = JobRecord(uuid.uuid4().hex, owner, now(), input_name, input_type, options.to_dict(), batch_id,
+                        created_ns=_next_ns())
         self.store.create(rec.id)
         self.save(rec)
         return rec
@@ -70,7 +83,7 @@ class Jobs:
 
     def all(self) -> list[JobRecord]:
         recs = [r for r in (self.get(j) for j in self.store.job_ids()) if r is not None]
-        return sorted(recs, key=lambda r: (r.created_at, r.id))
+        return sorted(recs, key=lambda r: (r.created_ns, r.created_at, r.id))
 
     def input_path(self, rec: JobRecord) -> Path:
         return self.store.input_dir(rec.id) / rec.input_name
