@@ -39,6 +39,7 @@ import pyvista as pv
 from scipy.spatial import cKDTree
 
 from kneemesh_core.hexmesh.extrude import HexMesh
+from kneemesh_core.hexmesh.quadmesh import quad_edges
 from kneemesh_core.hexmesh.quality import hex_quality
 from kneemesh_core.surfaces.metrics import signed_distance
 
@@ -62,14 +63,9 @@ def _layer0_quads(hm: HexMesh) -> np.ndarray:
     return hm.hexes[hm.layer == 0][:, :4]
 
 
-def _edges(quads: np.ndarray) -> np.ndarray:
-    e = np.sort(np.concatenate([quads[:, [0, 1]], quads[:, [1, 2]], quads[:, [2, 3]], quads[:, [3, 0]]]), axis=1)
-    return np.unique(e, axis=0)
-
-
 def node_rings(quads: np.ndarray, edge: np.ndarray) -> np.ndarray:
     """Graph distance (P,) of every bone-side node from the cartilage edge over the quad edges."""
-    e = _edges(quads)
+    e = quad_edges(quads)
     ring = np.where(edge, 0, np.iinfo(np.int32).max).astype(np.int64)
     frontier = edge.copy()
     r = 0
@@ -100,45 +96,34 @@ def _tangent(v: np.ndarray, n: np.ndarray) -> np.ndarray:
     return t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
 
 
-def _outward(bone: np.ndarray, normal: np.ndarray, ring: np.ndarray, e: np.ndarray) -> np.ndarray:
-    """Unit outward directions (P, 3) in the bone's tangent plane: at the edge, away from the
-    interior neighbours; inwards, the mean of the next-outer ring's directions."""
-    P = len(bone)
-    out = np.zeros((P, 3))
-    acc = np.zeros((P, 3))
-    cnt = np.zeros(P)
+def _outward(bone: np.ndarray, normal: np.ndarray, ring: np.ndarray, e: np.ndarray, depth: int) -> np.ndarray:
+    """Unit outward directions (P, 3) in the bone's tangent plane, ``depth`` rings deep: at the
+    edge, away from the interior neighbours; inwards, the mean of the next-outer ring's."""
+    acc = np.zeros((len(bone), 3))
     for a, b in ((0, 1), (1, 0)):  # edge node a, inner neighbour b
         m = (ring[e[:, a]] == 0) & (ring[e[:, b]] == 1)
         np.add.at(acc, e[m, a], bone[e[m, a]] - bone[e[m, b]])
-        np.add.at(cnt, e[m, a], 1)
         m = (ring[e[:, a]] == 0) & (ring[e[:, b]] == 0)  # along the loop: a fallback for corner nodes
         np.add.at(acc, e[m, a], 1e-3 * (bone[e[m, a]] - bone[e[m, b]]))
-    out[ring == 0] = acc[ring == 0]
-    out = _tangent(out, normal)
-    for r in range(1, int(ring[ring < 10**6].max(initial=0)) + 1):
-        acc[:] = 0
-        cnt[:] = 0
-        for a, b in ((0, 1), (1, 0)):
-            m = (ring[e[:, a]] == r) & (ring[e[:, b]] == r - 1)
-            np.add.at(acc, e[m, a], out[e[m, b]])
-            np.add.at(cnt, e[m, a], 1)
-        sel = ring == r
-        out[sel] = _tangent(acc[sel], normal[sel])
-    return out
+    return _propagate(_tangent(acc, normal), ring, e, depth, normal)
 
 
-def _propagate(values: np.ndarray, ring: np.ndarray, e: np.ndarray, depth: int) -> np.ndarray:
-    """Carry the edge nodes' values (P,) inwards ring by ring (mean of the outer neighbours)."""
-    v = np.where(ring == 0, values, 0.0).astype(float)
+def _propagate(values: np.ndarray, ring: np.ndarray, e: np.ndarray, depth: int,
+               normal: np.ndarray | None = None) -> np.ndarray:
+    """Carry the edge nodes' values (P,) or (P, 3) inwards ring by ring (mean of the outer
+    neighbours); with ``normal``, vectors are kept unit and in the tangent plane."""
+    v = np.where((ring == 0).reshape((-1,) + (1,) * (values.ndim - 1)), values, 0.0).astype(float)
     for r in range(1, depth + 1):
-        acc = np.zeros(len(v))
+        acc = np.zeros_like(v)
         cnt = np.zeros(len(v))
         for a, b in ((0, 1), (1, 0)):
             m = (ring[e[:, a]] == r) & (ring[e[:, b]] == r - 1)
             np.add.at(acc, e[m, a], v[e[m, b]])
             np.add.at(cnt, e[m, a], 1)
         sel = (ring == r) & (cnt > 0)
-        v[sel] = acc[sel] / cnt[sel]
+        v[sel] = acc[sel] / cnt[sel].reshape((-1,) + (1,) * (v.ndim - 1))
+        if normal is not None:
+            v[sel] = _tangent(v[sel], normal[sel])
     return v
 
 
@@ -270,12 +255,12 @@ def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptio
         bone = _Bone(bone)
         hm, fused = fuse(hm, bone, opts)
     quads = _layer0_quads(hm)
-    e = _edges(quads)
+    e = quad_edges(quads)
     ring = node_rings(quads, hm.node_edge[:P])
     b, a = hm.points[:P].copy(), hm.points[L * P:].copy()
     column = a - b
     normal = _bone_normals(b, quads, column)
-    out = _outward(b, normal, ring, e)
+    out = _outward(b, normal, ring, e, opts.rings)
     height = (column * normal).sum(1)  # thickness along the bone normal
     # how far the bone side reaches out: the run of a slope at the angle over the edge thickness
     run = height / np.tan(np.radians(opts.angle_deg))
@@ -375,7 +360,7 @@ def _edge_angles(hm: HexMesh, ring: np.ndarray, P: int, L: int) -> np.ndarray:
     b, a = hm.points[:P], hm.points[L * P:]
     quads = _layer0_quads(hm)
     n = _bone_normals(b, quads, a - b)
-    e = _edges(quads)
+    e = quad_edges(quads)
     inner = np.full(P, -1)
     for x, y in ((0, 1), (1, 0)):
         m = (ring[e[:, x]] == 0) & (ring[e[:, y]] == 1)

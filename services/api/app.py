@@ -101,7 +101,8 @@ def create_app(settings: Settings | None = None, runner=None) -> FastAPI:
     # errors: always {"code", "message"}
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, exc: ApiError):
-        metrics.rejected(exc.code) if request.method == "POST" else None
+        if request.method == "POST":
+            metrics.rejected(exc.code)
         return JSONResponse({"code": exc.code, "message": exc.message}, status_code=exc.status)
 
     @app.exception_handler(HTTPException)
