@@ -39,6 +39,7 @@ import pyvista as pv
 from scipy.spatial import cKDTree
 
 from kneemesh_core.hexmesh.extrude import HexMesh
+from kneemesh_core.hexmesh.optimize import independent
 from kneemesh_core.hexmesh.quadmesh import quad_edges
 from kneemesh_core.hexmesh.quality import hex_quality
 from kneemesh_core.surfaces.metrics import signed_distance
@@ -224,11 +225,73 @@ def fuse(hm: HexMesh, bone: "_Bone", opts: BlendOptions = BlendOptions()) -> tup
     move = _accept(hm, b, a, target, move, floor, opts.max_backoffs)
     # a bone-side node left inside the bone should still come out: its outer two rings may drop to 0.2
     inside = ~move & (signed_distance(b, bone.surface) < -FUSED_TOL_MM)
+    floor = np.where(hm.ring <= 1, 0.2, floor)
     if inside.any():
-        move = _accept(hm, b, a, target, move | inside, np.where(hm.ring <= 1, 0.2, floor), opts.max_backoffs,
-                       fixed=move)
-    pts = _restack(np.where(move[:, None], target, b), a, L)
-    return dataclasses.replace(hm, points=pts), move
+        move = _accept(hm, b, a, target, move | inside, floor, opts.max_backoffs, fixed=move)
+        # dropping every column of an offending element also drops innocent neighbours: offer the
+        # nodes still inside again, a few at a time, no two sharing an element
+        move, a = _add_back(hm, b, a, target, move, inside & ~move, floor)
+    b = np.where(move[:, None], target, b)
+    lifted, a = _lift(hm, b, a, bone, floor)
+    move &= (lifted == b).all(1)  # a fused node lifted with its neighbour is off the bone now
+    b = lifted
+    return dataclasses.replace(hm, points=_restack(b, a, L)), move
+
+
+def _lift(hm: HexMesh, b: np.ndarray, a: np.ndarray, bone: "_Bone", floor: np.ndarray,
+          spreads=((0.6, 0.3), (0.8, 0.6, 0.4, 0.2), (0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.1)),
+          rounds: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Carry the columns still (a node of them) inside the bone out of it whole.
+
+    Where the bone mesh bulges over the cartilage's rim (its smoothing fills the step at the
+    cartilage edge), a bone-side node cannot reach the surface without crushing its column:
+    the column and its articular node go out together, and the neighbours by a decaying share
+    of the lift (``spreads``: one profile per try) so no element shears.  The way out is the
+    bone normal or, for the columns inside, the shortest way from their deepest node; of the
+    lifts that keep every element at its floor, the one leaving the least depth is made.
+    Returns the bone-side and articular nodes (P, 3).
+    """
+    P, L = len(b), int(hm.node_layer.max())
+    e = quad_edges(_layer0_quads(hm))
+    for _ in range(rounds):  # each way out is only right near where it was measured: measure again
+        pts = _restack(b, a, L).reshape(L + 1, P, 3)
+        sd = signed_distance(pts.reshape(-1, 3), bone.surface).reshape(L + 1, P)
+        depth = -sd.min(0)
+        need = np.where(depth > FUSED_TOL_MM, depth + 0.01, 0.0)
+        if not need.any():
+            break
+        normal = bone.normal(b)
+        cols = np.flatnonzero(need)
+        deepest = pts[sd[:, cols].argmin(0), cols]
+        shortest = normal.copy()
+        shortest[cols] = _tangent(bone.closest(deepest) - deepest, np.zeros((len(cols), 3)))
+        best = None
+        for lift in (_spread(need, e, spread) for spread in spreads):
+            near = (lift > 0)[hm.hexes % P].any(1)  # only these elements change
+            for d in (normal, shortest):
+                nb, na = b + lift[:, None] * d, a + lift[:, None] * d
+                moved = _restack(nb, na, L)
+                if _bad_columns(hm.hexes[near], moved, floor[near], P).any():
+                    continue
+                left = -signed_distance(moved.reshape(L + 1, P, 3)[:, lift > 0].reshape(-1, 3), bone.surface).min()
+                if best is None or left < best[0]:
+                    best = (left, nb, na)
+        if best is None or best[0] >= depth.max():
+            break
+        _, b, a = best
+    return b, a
+
+
+def _spread(values: np.ndarray, e: np.ndarray, shares) -> np.ndarray:
+    """Values (P,) spread over the quad edges ``e``: each round a node takes at least ``share``
+    of its largest neighbour's value."""
+    v = values.copy()
+    for share in shares:
+        around = np.zeros(len(v))
+        np.maximum.at(around, e[:, 0], v[e[:, 1]])
+        np.maximum.at(around, e[:, 1], v[e[:, 0]])
+        v = np.maximum(v, share * around)
+    return v
 
 
 def _accept(hm: HexMesh, b, a, target, move, floor, rounds: int, fixed=None) -> np.ndarray:
@@ -244,6 +307,34 @@ def _accept(hm: HexMesh, b, a, target, move, floor, rounds: int, fixed=None) -> 
             break
         move = move & ~bad
     return move
+
+
+def _add_back(hm: HexMesh, b, a, target, move, candidates, floor, rounds: int = 30):
+    """``move`` (P,) plus those ``candidates`` whose own move keeps every element at its floor,
+    and the articular nodes (P, 3), of which those of the added columns may have moved with them.
+
+    Each round tries a set of candidates no two of which share an element, so an element that
+    falls below its floor has exactly one culprit; the farthest from their targets go first.
+    A candidate whose move alone would tilt its column too far takes its articular node half or
+    all of the way along (the column is carried off the bone rather than left in it).
+    """
+    P, L = len(b), int(hm.node_layer.max())
+    quads = _layer0_quads(hm)
+    shift = target - b
+    gap = np.linalg.norm(shift, axis=1)
+    todo = candidates & ~move
+    for _ in range(rounds):
+        pick = independent(np.where(todo, gap + 1e-6, 0.0), quads)
+        if not pick.any():
+            break
+        todo &= ~pick
+        for carry in (0.0, 0.5, 1.0):
+            top = np.where(pick[:, None], a + carry * shift, a)
+            pts = _restack(np.where((move | pick)[:, None], target, b), top, L)
+            ok = pick & ~_bad_columns(hm.hexes, pts, floor, P)
+            move, a = move | ok, np.where(ok[:, None], top, a)
+            pick &= ~ok
+    return move, a
 
 
 def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptions()) -> tuple[HexMesh, dict]:

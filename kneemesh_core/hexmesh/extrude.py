@@ -13,7 +13,7 @@
    not drop over a single element.
 4. Each node's column direction is chosen among blends of the bone normal
    and the domain ray to maximise the worst element around it
-   (:mod:`.optimize`: the first- and last-layer elements, scaled Jacobian
+   (:mod:`.optimize`: the elements of every layer, scaled Jacobian
    first, then edge ratio); where an element stays below 0.5, the column may
    be shortened or lengthened by up to 20%, and at last (untangling) its
    articular node may step off the surface by up to 0.4 mm or its bone-side

@@ -52,21 +52,23 @@ def scaled_jacobian(points: np.ndarray, hexes: np.ndarray | None = None) -> np.n
 
 def column_score(cols: np.ndarray, layers: int = 1) -> np.ndarray:
     """What the column optimiser maximises (H,) for single-element columns (H, 8, 3) that will be
-    cut into ``layers`` layers: the worst scaled Jacobian of the bottom and top layer elements
-    (the ones the gate sees; the layers between interpolate them), or less where the articular
-    face shrinks (converging columns squeeze its edges while the Jacobian, blind to scale, stays fine)."""
+    cut into ``layers`` layers: the worst scaled Jacobian of the layer elements (every layer: a
+    middle layer can be worse than both ends, as one phantom's femoral cartilage showed), or less
+    where the articular face shrinks (converging columns squeeze its edges while the Jacobian,
+    blind to scale, stays fine), or where the edge ratio grows."""
     bottom = np.linalg.norm(cols[:, [1, 2, 3, 0]] - cols[:, :4], axis=2)
     top = np.linalg.norm(cols[:, [5, 6, 7, 4]] - cols[:, 4:], axis=2)
     shrink = 1.25 * top.min(1) / np.maximum(bottom.mean(1), 1e-12)
     if layers == 1:
         return np.minimum(scaled_jacobian(cols), shrink)
     rise = (cols[:, 4:] - cols[:, :4]) / layers
-    first = np.concatenate([cols[:, :4], cols[:, :4] + rise], axis=1)
-    last = np.concatenate([cols[:, 4:] - rise, cols[:, 4:]], axis=1)
-    score = np.minimum(np.minimum(scaled_jacobian(first), scaled_jacobian(last)), shrink)
+    k = np.arange(layers + 1)[:, None, None, None]
+    levels = cols[None, :, :4] + k * rise[None]  # (L + 1, H, 4, 3)
+    elements = np.concatenate([levels[:-1], levels[1:]], axis=2).reshape(-1, 8, 3)  # (L * H, 8, 3)
+    score = np.minimum(scaled_jacobian(elements).reshape(layers, -1).min(0), shrink)
     # the edge ratio counts fully while it scores >= 0.5; below that only a little (never more than
     # 0.0015), so the optimiser never gives up a scaled Jacobian >= 0.5 for an edge ratio
-    ratio = np.maximum(_edge_ratio(first), _edge_ratio(last))
+    ratio = _edge_ratio(elements).reshape(layers, -1).max(0)
     er = 1.0 - 0.5 * (ratio - ER_FREE) / (ER_AT_HALF - ER_FREE)
     return np.minimum(score, np.where(er >= 0.5, er, 0.5 + 0.001 * np.maximum(er - 0.5, -1.5)))
 
@@ -116,7 +118,7 @@ def _score_moves(cols: np.ndarray, quads: np.ndarray, active: np.ndarray, bottom
     return score
 
 
-def _independent(gain: np.ndarray, quads: np.ndarray) -> np.ndarray:
+def independent(gain: np.ndarray, quads: np.ndarray) -> np.ndarray:
     """Nodes with a positive gain that is the largest among all nodes sharing a quad with them
     (ties to the lower index): no two of them share an element, so their moves can be applied together."""
     n = len(gain)
@@ -161,7 +163,7 @@ def choose_columns(bottoms: np.ndarray, tops: np.ndarray, quads: np.ndarray, lay
             score = _score_moves(cols, quads, active, bottoms[k], tops[k], n, layers)
             better = todo & (score > best + 1e-6)
             best[better], best_k[better] = score[better], k
-        move = _independent(np.where(best_k != choice, best - current, 0.0), quads)
+        move = independent(np.where(best_k != choice, best - current, 0.0), quads)
         if not move.any():
             break
         choice[move] = best_k[move]
@@ -196,7 +198,7 @@ def settle(bottom: np.ndarray, top: np.ndarray, target: np.ndarray, quads: np.nd
             score = _score_moves(cols, quads, active, bottom, cand, n, layers)
             ok = todo & (score >= np.minimum(current, floor))
             best_frac[ok] = frac
-        move = _independent(best_frac * gap, quads)
+        move = independent(best_frac * gap, quads)
         if not move.any():
             break
         top[move] += best_frac[move, None] * (target[move] - top[move])
