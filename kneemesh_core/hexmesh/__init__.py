@@ -36,12 +36,12 @@ from kneemesh_core.hexmesh.extrude import HexMesh, extrude
 from kneemesh_core.hexmesh.fidelity import fidelity, passes_fidelity
 from kneemesh_core.hexmesh.footprint import find_footprint
 from kneemesh_core.hexmesh.quadmesh import quad_mesh
-from kneemesh_core.hexmesh.quality import hex_quality, passes_gate, summary, to_grid
+from kneemesh_core.hexmesh.quality import boundary_crossings, hex_quality, passes_gate, summary, to_grid
 from kneemesh_core.hexmesh.rays import height_field
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.surfaces.isosurface import mask_surface
 from kneemesh_core.surfaces.masks import clean_mask
-from kneemesh_core.surfaces.metrics import crossing_edges, signed_distance
+from kneemesh_core.surfaces.metrics import signed_distance
 from kneemesh_core.tissues import BONE_OF, LABEL
 
 
@@ -150,6 +150,7 @@ def _attempt(labels: sitk.Image, tissue: str, opts: HexOptions, h: float, cache:
     hm = extrude(qm, fp, domain, opts.layers, surface, h, probe_mm=opts.probe_inset * h)
     q = hex_quality(hm.points, hm.hexes)
     s = summary(q, hm.ring)
+    s["self_intersections"] = boundary_crossings(hm.points, hm.hexes)
     f = fidelity(hm, surface, cm.label_ml)
     return hm, q, s, f, domain, cm, surface, fp
 
@@ -234,7 +235,6 @@ def blend_cartilage(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOpti
     s = summary(q, hm.ring)
     sj = q["scaled_jacobian"]
     inner = hm.ring >= 2
-    outer = to_grid(hm.points, hm.hexes).extract_surface().triangulate()
     depth = (lambda pts: round(float(max(0.0, -signed_distance(pts, bone).min())), 4)) if bone is not None else None
     penetration = depth(hm.points) if depth else None
     checks = {
@@ -244,7 +244,7 @@ def blend_cartilage(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOpti
         "sj_by_ring": s["sj_by_ring"],
         "inverted": s["inverted"],
         "collapsed": s["collapsed"],
-        "self_intersections": crossing_edges(outer),
+        "self_intersections": boundary_crossings(hm.points, hm.hexes),
         "bone_penetration_mm": penetration,
     }
     quality_ok = (checks["min_scaled_jacobian"] >= BLEND_MIN_SJ and checks["frac_sj_at_least_0_5"] >= BLEND_FRAC_GOOD

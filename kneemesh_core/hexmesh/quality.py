@@ -56,6 +56,17 @@ def summary(q: dict[str, np.ndarray], ring: np.ndarray | None = None) -> dict:
     return out
 
 
+def boundary_crossings(points: np.ndarray, hexes: np.ndarray) -> int:
+    """Edges of the mesh's triangulated boundary that pass through another boundary face: a mesh
+    whose elements are all fine can still fold over itself (two stretches of the cartilage edge
+    projected onto overlapping bone), which no element metric sees."""
+    from kneemesh_core.surfaces.metrics import crossing_edges
+
+    return crossing_edges(to_grid(points, hexes).extract_surface().triangulate())
+
+
 def passes_gate(s: dict) -> bool:
-    """The pre-blending gate: min SJ >= 0.5, nothing collapsed or inverted, edge ratio <= 6 for >= 99.9%."""
-    return s["min_scaled_jacobian"] >= 0.5 and s["collapsed"] == 0 and s["inverted"] == 0 and s["frac_edge_ratio_above_6"] <= 0.001
+    """The pre-blending gate: min SJ >= 0.5, nothing collapsed or inverted, edge ratio <= 6 for >= 99.9%,
+    and (where it was measured) a boundary that does not cross itself."""
+    return (s["min_scaled_jacobian"] >= 0.5 and s["collapsed"] == 0 and s["inverted"] == 0
+            and s["frac_edge_ratio_above_6"] <= 0.001 and s.get("self_intersections", 0) == 0)
