@@ -36,6 +36,8 @@ import dataclasses
 
 import numpy as np
 import pyvista as pv
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from kneemesh_core.hexmesh.extrude import HexMesh
@@ -314,7 +316,8 @@ def _add_back(hm: HexMesh, b, a, target, move, candidates, floor, rounds: int = 
     and the articular nodes (P, 3), of which those of the added columns may have moved with them.
 
     Each round tries a set of candidates no two of which share an element, so an element that
-    falls below its floor has exactly one culprit; the farthest from their targets go first.
+    falls below its floor has exactly one culprit; the farthest from their targets go first, and
+    a refused candidate is offered again in later rounds.
     A candidate whose move alone would tilt its column too far takes its articular node half or
     all of the way along (the column is carried off the bone rather than left in it).
     """
@@ -323,17 +326,33 @@ def _add_back(hm: HexMesh, b, a, target, move, candidates, floor, rounds: int = 
     shift = target - b
     gap = np.linalg.norm(shift, axis=1)
     todo = candidates & ~move
+    tries = np.zeros(len(b), int)
     for _ in range(rounds):
         pick = independent(np.where(todo, gap + 1e-6, 0.0), quads)
         if not pick.any():
             break
-        todo &= ~pick
         for carry in (0.0, 0.5, 1.0):
             top = np.where(pick[:, None], a + carry * shift, a)
             pts = _restack(np.where((move | pick)[:, None], target, b), top, L)
             ok = pick & ~_bad_columns(hm.hexes, pts, floor, P)
             move, a = move | ok, np.where(ok[:, None], top, a)
             pick &= ~ok
+        # a refused node is offered again (its neighbours may have moved since), three times at most
+        tries[pick] += 1
+        todo &= ~move & (tries < 3)
+    # neighbours inside together may only come out together: each connected patch of those left, at once
+    left = candidates & ~move
+    if left.any():
+        e = quad_edges(quads)
+        e = e[left[e[:, 0]] & left[e[:, 1]]]
+        _, patch = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(P, P)), directed=False)
+        for carry in (0.0, 0.5, 1.0):
+            top = np.where(left[:, None], a + carry * shift, a)
+            pts = _restack(np.where((move | left)[:, None], target, b), top, L)
+            bad = _bad_columns(hm.hexes, pts, floor, P) & left
+            ok = left & ~np.isin(patch, patch[bad])
+            move, a = move | ok, np.where(ok[:, None], top, a)
+            left &= ~ok
     return move, a
 
 
