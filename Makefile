@@ -1,6 +1,6 @@
 # KneeMesh: two commands on a fresh machine.
 #   make demo   set up .venv if needed and run the main job on the bundled sample knee
-#   make test   set up .venv with the test extras and run the whole test suite
+#   make test   set up .venv with the test and training extras and run the whole test suite
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -17,7 +17,7 @@ $(PY):
 
 # Reinstall only when the dependency list changes: a second run is fast.
 $(STAMP): pyproject.toml | $(PY)
-	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[test]"
+	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[test,train]"
 	touch $(STAMP)
 
 venv: $(STAMP)

@@ -107,16 +107,23 @@ def mesh(
     blend_angle: float = typer.Option(45.0, "--blend-angle", min=20.0, max=80.0, help="Angle (deg) at which the blended cartilage edge meets the bone."),
 ):
     """Mesh a knee: closed bone shells (meshes/*.vtp), all-hex cartilage (meshes/*.vtu), report.json."""
-    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
-
     from kneemesh_core.hexmesh import BlendOptions, HexOptions
-    from kneemesh_core.pipeline import JobOptions, run
+    from kneemesh_core.pipeline import JobOptions
     from kneemesh_core.surfaces.tissue import SurfaceOptions
 
     opts = JobOptions(preset=preset, labels=labels, side=side, only=only, stl=stl,
                       surface=SurfaceOptions(bone_edge_mm=bone_edge),
                       hex=HexOptions(element_size=element_size, layers=layers),
                       blend=None if no_blend else BlendOptions(angle_deg=blend_angle))
+    _run_job(labels_file, out_dir, opts, workers)
+
+
+def _run_job(input_path: Path, out_dir: Path, opts, workers: int) -> None:
+    """Run the pipeline in-process with a progress line per step, then print the report table."""
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from kneemesh_core.pipeline import run
+
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=err,
                   transient=not err.is_terminal) as bar:
         tasks: dict[str, int] = {}
@@ -128,7 +135,7 @@ def mesh(
                        completed=1 if state in ("done", "ok", "failed") else 0)
 
         with _clear_errors():
-            report = run(labels_file, out_dir, opts, workers=workers, progress=progress)
+            report = run(input_path, out_dir, opts, workers=workers, progress=progress)
     t = Table(title=f"{out_dir} ({report['input']['side']} knee, {report['input']['preset']} labels)")
     for col in ("tissue", "status", "s", "elements", "volume ml", "label ml", "quality", "fidelity"):
         t.add_column(col)
@@ -152,6 +159,118 @@ def mesh(
     out.print(f"report: {Path(out_dir) / 'report.json'}")
     if report["summary"]["failed"]:
         raise typer.Exit(1)
+
+
+@app.command("run")
+def run_image(
+    image_file: Path = typer.Argument(..., metavar="IMAGE", help="Sagittal knee MRI (NIfTI, NRRD, MHA, DICOM folder or zip)."),
+    out_dir: Path = typer.Option(..., "--out", help="Output folder: labels.nrrd, meshes/, surfaces/, report.json."),
+    model: Optional[Path] = typer.Option(None, "--model", help="ONNX segmentation model (default: the shipped one)."),
+    side: Optional[str] = SideOpt,
+    element_size: float = typer.Option(1.0, "--element-size", help="Cartilage in-plane element edge, mm."),
+    layers: int = typer.Option(4, "--layers", min=1, help="Cartilage element layers through the thickness."),
+    workers: int = typer.Option(2, "--workers", min=1, help="Processes meshing tissues in parallel."),
+    no_blend: bool = typer.Option(False, "--no-blend", help="Keep the step at the cartilage edge."),
+):
+    """Segment a knee MRI, then mesh it: the whole job from an image, in this process."""
+    from kneemesh_core.hexmesh import BlendOptions, HexOptions
+    from kneemesh_core.pipeline import JobOptions
+
+    opts = JobOptions(input_type="image", model=str(model) if model else None, side=side,
+                      hex=HexOptions(element_size=element_size, layers=layers), blend=None if no_blend else BlendOptions())
+    _run_job(image_file, out_dir, opts, workers)
+
+
+@app.command()
+def train(
+    data: list[Path] = typer.Option(..., "--data", help="Folder of label maps (any supported convention); repeatable."),
+    out_file: Path = typer.Option(..., "--out", help="The ONNX model to write (its run record goes beside it as .json)."),
+    epochs: int = typer.Option(40, "--epochs", min=1),
+    steps: int = typer.Option(100, "--steps", min=1, help="Batches per epoch."),
+    batch: int = typer.Option(12, "--batch", min=1),
+    crop: int = typer.Option(256, "--crop", min=64, help="Training crop size, pixels (a multiple of 32)."),
+    lr: float = typer.Option(3e-3, "--lr", help="Peak learning rate (one-cycle schedule)."),
+    widths: str = typer.Option("16,32,64,96", "--widths", help="Channels of the four levels."),
+    head: int = typer.Option(12, "--head", help="Channels of the full-resolution head."),
+    patience: int = typer.Option(8, "--patience", help="Stop after this many epochs without a better validation Dice."),
+    phantoms: int = typer.Option(0, "--phantoms", min=0, help="Also train on this many phantom knees."),
+    max_minutes: float = typer.Option(0.0, "--max-minutes", help="Time budget in minutes: the learning-rate schedule runs on the clock and ends with it (0: none)."),
+    seed: int = typer.Option(0, "--seed"),
+):
+    """Train the segmentation network on synthetic DESS images of label maps; export ONNX (needs the train extra)."""
+    try:
+        from kneemesh_core.segmentation.train import TrainOptions, train as run_training
+    except ImportError as exc:
+        err.print(f"[bold red]error[/] (missing_extra): training needs PyTorch: pip install 'kneemesh[train]' ({exc}).")
+        raise typer.Exit(2)
+    if crop % 32:
+        err.print("[bold red]error[/] (bad_option): --crop must be a multiple of 32.")
+        raise typer.Exit(2)
+    opts = TrainOptions(epochs=epochs, steps_per_epoch=steps, batch=batch, crop=crop, lr=lr, head=head,
+                        widths=tuple(int(w) for w in widths.split(",")), patience=patience, seed=seed,
+                        max_minutes=max_minutes)
+    with _clear_errors():
+        run_training(data, out_file, opts, phantoms=phantoms, log=lambda m: err.print(m, highlight=False))
+
+
+@app.command()
+def segment(
+    image_file: Path = typer.Argument(..., metavar="IMAGE", help="Sagittal knee MRI (NIfTI, NRRD, MHA, DICOM folder or zip)."),
+    out_file: Path = typer.Option(..., "--out", help="Label map to write (canonical kneemesh labels 1..7)."),
+    model: Optional[Path] = typer.Option(None, "--model", help="ONNX model (default: the shipped one)."),
+    side: Optional[str] = SideOpt,
+    probabilities: Optional[Path] = typer.Option(None, "--probabilities", help="Also write per-class probabilities (uint8, 255 = 1) here."),
+    threads: int = typer.Option(0, "--threads", min=0, help="onnxruntime threads (0: all cores)."),
+):
+    """Segment a knee MRI into bones and cartilages with the ONNX network, on the CPU."""
+    from rich.progress import Progress
+
+    from kneemesh_core.io import read_volume, write_image
+    from kneemesh_core.segmentation.infer import SegmentationModel, segment as run_segment
+
+    with _clear_errors():
+        vol = read_volume(image_file)
+        net = SegmentationModel.load(model, threads)
+        with Progress(console=err, transient=not err.is_terminal) as bar:
+            task = bar.add_task("segmenting slices", total=None)
+            result = run_segment(vol, net, side=side, probabilities=probabilities is not None,
+                                 progress=lambda done, n: bar.update(task, completed=done, total=n))
+        write_image(result.knee.labels, out_file)
+        if probabilities is not None:
+            write_image(result.probabilities, probabilities)
+    vols = result.knee.volumes_ml()
+    out.print(f"{out_file}: {result.knee.side} knee ({result.knee.side_method}); " + ", ".join(
+        f"{t} {v:.1f} ml" for t, v in vols.items()) + f"; {result.seconds['total']:.1f} s")
+
+
+@app.command("evaluate-seg")
+def evaluate_seg(
+    pred: Path = typer.Option(..., "--pred", help="Predicted label map, or a folder of them."),
+    truth: Path = typer.Option(..., "--truth", help="Reference label map, or a folder with the same file names."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+):
+    """Dice, average symmetric surface distance and 95 % Hausdorff per tissue (mean over files for folders)."""
+    from kneemesh_core.knee import load_knee
+    from kneemesh_core.segmentation.evaluate import compare
+
+    with _clear_errors():
+        pairs = ([(p, truth / p.name) for p in sorted(pred.iterdir()) if (truth / p.name).exists()]
+                 if pred.is_dir() else [(pred, truth)])
+        if not pairs:
+            raise KneeMeshError("not_found", f"no file of {pred} has a namesake in {truth}.")
+        rows = {p.name: compare(load_knee(p).labels, load_knee(t).labels) for p, t in pairs}
+    if as_json:
+        out.print_json(json.dumps(rows))
+        return
+    t = Table(title=f"segmentation accuracy ({len(rows)} map{'s' if len(rows) > 1 else ''})")
+    for col in ("tissue", "Dice", "ASSD mm", "HD95 mm"):
+        t.add_column(col)
+    tissues = sorted({k for r in rows.values() for k in r}, key=list(rows[next(iter(rows))]).index if len(rows) == 1 else str)
+    for tissue in tissues:
+        vals = [r[tissue] for r in rows.values() if tissue in r]
+        mean = lambda k: sum(v[k] for v in vals if v[k] is not None) / max(1, sum(v[k] is not None for v in vals))  # noqa: E731
+        t.add_row(tissue, f"{mean('dice'):.3f}", f"{mean('assd_mm'):.3f}", f"{mean('hd95_mm'):.3f}")
+    out.print(t)
 
 
 DataDirOpt = typer.Option(None, "--data-dir", help="Job folders live here (default: $KNEEMESH_DATA_DIR or ./kneemesh-data).")

@@ -186,6 +186,18 @@ def load_knee(
     return canonicalise(vol, resolve_convention(preset, labels), side)
 
 
+def describe_image(image: sitk.Image, source: str) -> dict:
+    """Geometry of an input image (before segmentation): source, shape, spacing, origin, orientation."""
+    return {
+        "source": source,
+        "shape": list(image.GetSize()),
+        "spacing_mm": [round(s, 6) for s in image.GetSpacing()],
+        "origin_mm": [round(o, 4) for o in image.GetOrigin()],
+        "orientation": sitk.DICOMOrientImageFilter.GetOrientationFromDirectionCosines(image.GetDirection()),
+        "direction": [round(v, 6) for v in image.GetDirection()],
+    }
+
+
 def describe(knee: Knee) -> dict:
     """The facts ``kneemesh inspect --json`` prints."""
     img = knee.labels

@@ -4,7 +4,9 @@ A job is a :func:`plan`: stages run in order, and the steps of one stage are
 independent of each other, so a runner may run them in parallel:
 
 1. ``ingest`` reads the input, decides the label convention and the side, and
-   writes canonical labels ``labels.nrrd`` and ``job.json``;
+   writes canonical labels ``labels.nrrd`` and ``job.json``; for an image
+   (``input_type="image"``) it checks the image and ``segment`` then writes the
+   labels with the ONNX network (:mod:`kneemesh_core.segmentation`);
 2. one step per bone, then one per cartilage (later stages such as blending
    need the bone surfaces); each writes that tissue's mesh and returns its
    report entry (a failure is an entry with ``status: "failed"`` and a reason,
@@ -41,8 +43,8 @@ import pyvista as pv
 
 from kneemesh_core import __version__
 from kneemesh_core.errors import KneeMeshError
-from kneemesh_core.io import read_label_map, write_image
-from kneemesh_core.knee import canonicalise, describe
+from kneemesh_core.io import read_label_map, read_volume, write_image
+from kneemesh_core.knee import canonicalise, describe, describe_image
 from kneemesh_core.hexmesh import BlendOptions, HexOptions, blend_cartilage, mesh_cartilage
 from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, TISSUES, resolve_convention
@@ -53,7 +55,8 @@ REPORT_FILE = "report.json"
 BUNDLE_FILE = "bundle.zip"
 MANIFEST_FILE = "artifacts.json"
 STEPS_DIR = "steps"
-INGEST, REPORT, BUNDLE = "ingest", "report", "bundle"
+INGEST, SEGMENT, REPORT, BUNDLE = "ingest", "segment", "report", "bundle"
+INPUT_TYPES = ("labels", "image")
 GROUPS = {"bones": BONES, "cartilage": CARTILAGES, "all": TISSUES}
 # What the bundle carries: labels used, meshes, surfaces, the report (later: attachments, decks).
 BUNDLED = (LABELS_FILE, JOB_FILE, REPORT_FILE, "meshes/*", "surfaces/*")
@@ -69,6 +72,8 @@ class JobCancelled(Exception):
 class JobOptions:
     """What the user can set for one job."""
 
+    input_type: str = "labels"  # or "image": a DESS volume, segmented first
+    model: str | None = None  # segmentation model (default: the shipped one)
     preset: str | None = None
     labels: str | None = None
     side: str | None = None
@@ -121,6 +126,18 @@ def ingest(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: J
     Nothing is written unless the input is valid.
     """
     options.tissues()
+    if options.input_type not in INPUT_TYPES:
+        raise KneeMeshError("bad_option", f"input type {options.input_type!r}: expected one of {', '.join(INPUT_TYPES)}.")
+    if options.input_type == "image":
+        from kneemesh_core.segmentation.infer import SegmentationModel
+
+        vol = read_volume(input_path)
+        SegmentationModel.load(options.model)  # a missing or foreign model fails here, before anything is queued
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        job = {"kneemesh_version": __version__, "input": describe_image(vol.image, vol.source), "options": options.to_dict()}
+        _atomic_write_text(out / JOB_FILE, json.dumps(job, indent=2))
+        return job
     vol = read_label_map(input_path)
     knee = canonicalise(vol, resolve_convention(options.preset, options.labels), options.side)
     out = Path(out_dir)
@@ -129,6 +146,24 @@ def ingest(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: J
     job = {"kneemesh_version": __version__, "input": describe(knee), "options": options.to_dict()}
     _atomic_write_text(out / JOB_FILE, json.dumps(job, indent=2))
     return job
+
+
+def segment_input(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: JobOptions) -> dict:
+    """Stage 1b (image inputs): segment the image into canonical labels ``labels.nrrd``; ``job.json``
+    gains the knee's description and the segmentation's facts."""
+    from kneemesh_core.segmentation.infer import SegmentationModel, segment
+
+    out = Path(out_dir)
+    model = SegmentationModel.load(options.model)
+    result = segment(read_volume(input_path), model, side=options.side)
+    write_image(result.knee.labels, out / LABELS_FILE)
+    job = json.loads((out / JOB_FILE).read_text())
+    facts = {"model": model.path.name, "model_version": model.meta.get("version"), "seconds": result.seconds,
+             "image": job["input"]}
+    job["input"] = {**describe(result.knee), "preset": "segmented", "segmentation": facts}
+    _atomic_write_text(out / JOB_FILE, json.dumps(job, indent=2))
+    return {"status": "ok", "side": result.knee.side, "seconds": result.seconds["total"],
+            "tissues_ml": job["input"]["tissues"]}
 
 
 def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
@@ -164,7 +199,8 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
                 entry["code"] = "quality_gate"
                 entry["reason"] = (f"quality gate not met after {len(facts['attempts'])} attempts: min scaled Jacobian "
                                    f"{facts['min_scaled_jacobian']}, {facts['inverted']} inverted, "
-                                   f"{facts['frac_edge_ratio_above_6']:.4%} with edge ratio > 6; best mesh kept as {files[0].name}")
+                                   f"{facts['frac_edge_ratio_above_6']:.4%} with edge ratio > 6, "
+                                   f"{facts['self_intersections']} boundary edges crossing; best mesh kept as {files[0].name}")
         entry["files"] = [str(f.relative_to(out)) for f in files]
     except KneeMeshError as exc:
         entry = {"status": "failed", "reason": exc.message, "code": exc.code}
@@ -194,7 +230,7 @@ def write_report(out_dir: str | os.PathLike, entries: dict[str, dict]) -> dict:
 def plan(options: JobOptions) -> list[tuple[str, ...]]:
     """The stages of a job, in order; the steps of one stage may run in parallel."""
     tissues = options.tissues()
-    stages: list[tuple[str, ...]] = [(INGEST,)]
+    stages: list[tuple[str, ...]] = [(INGEST,)] + ([(SEGMENT,)] if options.input_type == "image" else [])
     for group in (BONES, CARTILAGES):
         steps = tuple(_longest_first(t for t in tissues if t in group))
         if steps:
@@ -252,6 +288,10 @@ def run_step(
         try:
             if step in TISSUES:
                 result = mesh_tissue(out_dir, step, options)
+            elif step == SEGMENT:
+                if input_path is None:
+                    raise KneeMeshError("bad_option", "the segment step needs the input image.")
+                result = segment_input(input_path, out_dir, JobOptions.from_dict(options))
             elif step == REPORT:
                 opts = JobOptions.from_dict(options)
                 entries = {t: read_step(out_dir, t)["result"] for t in opts.tissues()}

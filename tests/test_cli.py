@@ -53,3 +53,27 @@ def test_phantom_command_writes_image_and_labels(tmp_path):
     assert (tmp_path / "ph" / "image.nii.gz").exists() and (tmp_path / "ph" / "labels.nii.gz").exists()
     info = json.loads(run("inspect", tmp_path / "ph" / "labels.nii.gz", "--json").stdout)
     assert info["preset"] == "kneemesh" and info["side"] == "left"
+
+
+def test_segment_and_evaluate_commands(tmp_path):
+    """``segment`` with the shipped model writes labels on the image's grid (and probabilities);
+    ``evaluate-seg`` scores them against the phantom's labels; a missing model is a one-line error."""
+    import pytest
+    import SimpleITK as sitk
+
+    from kneemesh_core.segmentation.infer import DEFAULT_MODEL
+
+    if not DEFAULT_MODEL.exists():
+        pytest.skip("no shipped segmentation model")
+    assert run("phantom", tmp_path / "ph", "--seed", "25", "--side", "right").returncode == 0
+    image, truth = tmp_path / "ph" / "image.nii.gz", tmp_path / "ph" / "labels.nii.gz"
+    r = run("segment", image, "--out", tmp_path / "seg.nii.gz", "--probabilities", tmp_path / "prob.nii.gz")
+    assert r.returncode == 0, r.stderr
+    seg, img, prob = (sitk.ReadImage(str(p)) for p in (tmp_path / "seg.nii.gz", image, tmp_path / "prob.nii.gz"))
+    assert seg.GetSize() == img.GetSize() and seg.GetSpacing() == img.GetSpacing() and seg.GetOrigin() == img.GetOrigin()
+    assert prob.GetNumberOfComponentsPerPixel() == 7
+    r = run("evaluate-seg", "--pred", tmp_path / "seg.nii.gz", "--truth", truth, "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["seg.nii.gz"]["femoral_cartilage"]["dice"] > 0.8
+    r = run("segment", image, "--out", tmp_path / "x.nii.gz", "--model", tmp_path / "none.onnx")
+    assert r.returncode == 2 and "model_missing" in r.stderr and not (tmp_path / "x.nii.gz").exists()

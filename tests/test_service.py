@@ -19,6 +19,7 @@ import SimpleITK as sitk
 from fastapi.testclient import TestClient
 
 from conftest import OAI, PYMSKT_RIGHT, ROOT, SAMPLE, real
+from kneemesh_core.segmentation.infer import DEFAULT_MODEL
 from service_helpers import RedisServer, Worker, free_port, poll, wait_for
 from services.api import create_app
 from services.settings import Settings
@@ -96,6 +97,27 @@ def test_label_map_job_runs_every_tissue_as_its_own_celery_task(stack):
     blend = report["tissues"]["medial_tibial_cartilage"]["blend"]  # fused onto the bone the job meshed first
     assert blend["passed"] and report["tissues"]["medial_tibial_cartilage"]["fused_fraction"] > 0.9
     assert hexes["scaled_jacobian"].min() >= 0.2 and (hexes["scaled_jacobian"] >= 0.5).mean() >= 0.99
+
+
+@pytest.mark.skipif(not DEFAULT_MODEL.exists(), reason="no shipped segmentation model")
+def test_image_job_is_segmented_by_a_worker_then_meshed(stack, tmp_path):
+    """A DESS-like image (a phantom the model never trained on) goes through the segment step, then the bones."""
+    from kneemesh_core.phantom import write_phantom
+
+    image = write_phantom(tmp_path, 23, "left", 0)["image"]
+    c = stack.client
+    r = upload(c, image, input_type="image", only="bones")
+    assert r.status_code == 202, r.text
+    status = poll(c, r.json()["id"], headers=A)
+    assert status["state"] == "succeeded", status
+    steps = [s["step"] for s in status["steps"]]
+    assert steps[:2] == ["ingest", "segment"] and status["steps"][1]["task_id"]
+    assert sorted(status["tissues_ok"]) == ["femur", "patella", "tibia"]
+    out = stack.data / "jobs" / r.json()["id"] / "out"
+    labels, source = sitk.ReadImage(str(out / "labels.nrrd")), sitk.ReadImage(str(image))
+    assert labels.GetSize() == source.GetSize() and np.allclose(labels.GetOrigin(), source.GetOrigin())
+    report = json.loads((out / "report.json").read_text())
+    assert report["input"]["side"] == "left" and report["input"]["segmentation"]["model"] == DEFAULT_MODEL.name
 
 
 def test_worker_killed_mid_job_loses_nothing(stack):
@@ -176,8 +198,8 @@ def test_bad_uploads_are_refused_clearly_and_queue_nothing(stack, tmp_path):
         assert r.status_code == status, (what, r.text)
         body = r.json()
         assert body["message"] and (code is None or body["code"] == code), (what, body)
-    r = upload(c, SAMPLE, input_type="image")
-    assert r.status_code == 422 and r.json()["code"] == "segmentation_unavailable"
+    r = upload(c, _image(np.ones((64, 64), np.float32), tmp_path / "slice_image.nrrd"), input_type="image")
+    assert r.status_code == 422 and r.json()["code"] == "not_3d"
     r = upload(c, SAMPLE, layers="0")
     assert r.status_code == 422 and r.json()["code"] == "invalid_request" and "layers" in r.json()["message"]
     # too large: a server with a small limit refuses before storing anything

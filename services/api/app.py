@@ -174,12 +174,9 @@ def create_app(settings: Settings | None = None, runner=None) -> FastAPI:
 
     async def accept(upload: UploadFile, opts: schemas.Options, who: str, batch_id: str | None) -> JobRecord:
         """Store and validate one upload; returns its job record (not yet queued). Nothing is left on failure."""
-        if opts.input_type == "image":
-            raise ApiError(422, "segmentation_unavailable",
-                           "this server has no segmentation model yet, so it cannot start from an image; "
-                           "upload a label map (input_type=labels).")
         name = safe_filename(upload.filename)
-        options = JobOptions(preset=opts.preset, side=opts.side, only=opts.only, bundle=True,
+        # an image is checked here (readable, 3-D, a model to segment it) and segmented by the first queued step
+        options = JobOptions(input_type=opts.input_type, preset=opts.preset, side=opts.side, only=opts.only, bundle=True,
                              hex=HexOptions(element_size=opts.element_size, layers=opts.layers),
                              blend=BlendOptions() if opts.blend else None)
         rec = jobs.create(who, name, opts.input_type, options, batch_id)
