@@ -67,7 +67,7 @@ def main() -> None:
         hd = [v["hd95_mm"] for v in vals if v["hd95_mm"] is not None]
         table.add_row(t, f"{dice.mean():.3f}", f"{dice.min():.3f}", f"{np.mean(assd):.3f}", f"{np.mean(hd):.2f}")
     console.print(table)
-    full = [s for s, size in times if size[0] * size[1] * size[2] >= 384 * 384 * 160]
+    full = [s for s, size in times if tuple(size) == (384, 384, 160)]
     console.print(f"time per volume: median {np.median([s for s, _ in times]):.1f} s"
                   + (f"; 384x384x160 volumes: median {np.median(full):.1f} s, max {max(full):.1f} s" if full else "")
                   + f"; peak memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")

@@ -198,18 +198,16 @@ def train(
     seed: int = typer.Option(0, "--seed"),
 ):
     """Train the segmentation network on synthetic DESS images of label maps; export ONNX (needs the train extra)."""
-    try:
-        from kneemesh_core.segmentation.train import TrainOptions, train as run_training
-    except ImportError as exc:
-        err.print(f"[bold red]error[/] (missing_extra): training needs PyTorch: pip install 'kneemesh[train]' ({exc}).")
-        raise typer.Exit(2)
-    if crop % 32:
-        err.print("[bold red]error[/] (bad_option): --crop must be a multiple of 32.")
-        raise typer.Exit(2)
-    opts = TrainOptions(epochs=epochs, steps_per_epoch=steps, batch=batch, crop=crop, lr=lr, head=head,
-                        widths=tuple(int(w) for w in widths.split(",")), patience=patience, seed=seed,
-                        max_minutes=max_minutes)
     with _clear_errors():
+        try:
+            from kneemesh_core.segmentation.train import TrainOptions, train as run_training
+        except ImportError as exc:
+            raise KneeMeshError("missing_extra", f"training needs PyTorch: pip install 'kneemesh[train]' ({exc}).") from exc
+        if crop % 32:
+            raise KneeMeshError("bad_option", "--crop must be a multiple of 32.")
+        opts = TrainOptions(epochs=epochs, steps_per_epoch=steps, batch=batch, crop=crop, lr=lr, head=head,
+                            widths=tuple(int(w) for w in widths.split(",")), patience=patience, seed=seed,
+                            max_minutes=max_minutes)
         run_training(data, out_file, opts, phantoms=phantoms, log=lambda m: err.print(m, highlight=False))
 
 
@@ -252,6 +250,7 @@ def evaluate_seg(
     """Dice, average symmetric surface distance and 95 % Hausdorff per tissue (mean over files for folders)."""
     from kneemesh_core.knee import load_knee
     from kneemesh_core.segmentation.evaluate import compare
+    from kneemesh_core.tissues import TISSUES
 
     with _clear_errors():
         pairs = ([(p, truth / p.name) for p in sorted(pred.iterdir()) if (truth / p.name).exists()]
@@ -265,8 +264,7 @@ def evaluate_seg(
     t = Table(title=f"segmentation accuracy ({len(rows)} map{'s' if len(rows) > 1 else ''})")
     for col in ("tissue", "Dice", "ASSD mm", "HD95 mm"):
         t.add_column(col)
-    tissues = sorted({k for r in rows.values() for k in r}, key=list(rows[next(iter(rows))]).index if len(rows) == 1 else str)
-    for tissue in tissues:
+    for tissue in [t for t in TISSUES if any(t in r for r in rows.values())]:
         vals = [r[tissue] for r in rows.values() if tissue in r]
         mean = lambda k: sum(v[k] for v in vals if v[k] is not None) / max(1, sum(v[k] is not None for v in vals))  # noqa: E731
         t.add_row(tissue, f"{mean('dice'):.3f}", f"{mean('assd_mm'):.3f}", f"{mean('hd95_mm'):.3f}")

@@ -200,15 +200,8 @@ def describe_image(image: sitk.Image, source: str) -> dict:
 
 def describe(knee: Knee) -> dict:
     """The facts ``kneemesh inspect --json`` prints."""
-    img = knee.labels
-    d = np.asarray(img.GetDirection()).reshape(3, 3)
     return {
-        "source": knee.source,
-        "shape": list(img.GetSize()),
-        "spacing_mm": [round(s, 6) for s in img.GetSpacing()],
-        "origin_mm": [round(o, 4) for o in img.GetOrigin()],
-        "orientation": sitk.DICOMOrientImageFilter.GetOrientationFromDirectionCosines(img.GetDirection()),
-        "direction": [round(v, 6) for v in d.ravel()],
+        **describe_image(knee.labels, knee.source),
         "preset": knee.convention.name,
         "side": knee.side,
         "side_method": knee.side_method,

@@ -128,22 +128,21 @@ def ingest(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: J
     options.tissues()
     if options.input_type not in INPUT_TYPES:
         raise KneeMeshError("bad_option", f"input type {options.input_type!r}: expected one of {', '.join(INPUT_TYPES)}.")
-    if options.input_type == "image":
+    knee = None
+    if options.input_type == "image":  # checked here, segmented by the segment step
         from kneemesh_core.segmentation.infer import SegmentationModel
 
         vol = read_volume(input_path)
         SegmentationModel.load(options.model)  # a missing or foreign model fails here, before anything is queued
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        job = {"kneemesh_version": __version__, "input": describe_image(vol.image, vol.source), "options": options.to_dict()}
-        _atomic_write_text(out / JOB_FILE, json.dumps(job, indent=2))
-        return job
-    vol = read_label_map(input_path)
-    knee = canonicalise(vol, resolve_convention(options.preset, options.labels), options.side)
+        description = describe_image(vol.image, vol.source)
+    else:
+        knee = canonicalise(read_label_map(input_path), resolve_convention(options.preset, options.labels), options.side)
+        description = describe(knee)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    write_image(knee.labels, out / LABELS_FILE)
-    job = {"kneemesh_version": __version__, "input": describe(knee), "options": options.to_dict()}
+    if knee is not None:
+        write_image(knee.labels, out / LABELS_FILE)
+    job = {"kneemesh_version": __version__, "input": description, "options": options.to_dict()}
     _atomic_write_text(out / JOB_FILE, json.dumps(job, indent=2))
     return job
 

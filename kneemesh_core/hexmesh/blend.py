@@ -266,7 +266,8 @@ def _lift(hm: HexMesh, b: np.ndarray, a: np.ndarray, bone: "_Bone", floor: np.nd
         cols = np.flatnonzero(need)
         deepest = pts[sd[:, cols].argmin(0), cols]
         shortest = normal.copy()
-        shortest[cols] = _tangent(bone.closest(deepest) - deepest, np.zeros((len(cols), 3)))
+        out = bone.closest(deepest) - deepest
+        shortest[cols] = out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
         best = None
         for lift in (_spread(need, e, spread) for spread in spreads):
             near = (lift > 0)[hm.hexes % P].any(1)  # only these elements change
@@ -312,48 +313,52 @@ def _accept(hm: HexMesh, b, a, target, move, floor, rounds: int, fixed=None) -> 
 
 
 def _add_back(hm: HexMesh, b, a, target, move, candidates, floor, rounds: int = 30):
-    """``move`` (P,) plus those ``candidates`` whose own move keeps every element at its floor,
-    and the articular nodes (P, 3), of which those of the added columns may have moved with them.
+    """``move`` (P,) plus those ``candidates`` whose move keeps every element at its floor, and the
+    articular nodes (P, 3), of which those of the added columns may have moved with them.
 
     Each round tries a set of candidates no two of which share an element, so an element that
     falls below its floor has exactly one culprit; the farthest from their targets go first, and
-    a refused candidate is offered again in later rounds.
-    A candidate whose move alone would tilt its column too far takes its articular node half or
-    all of the way along (the column is carried off the bone rather than left in it).
+    a refused candidate is offered again in later rounds.  Neighbours inside together may only
+    come out together: the candidates left are then tried patch by patch (connected over the quads).
     """
-    P, L = len(b), int(hm.node_layer.max())
+    P = len(b)
     quads = _layer0_quads(hm)
-    shift = target - b
-    gap = np.linalg.norm(shift, axis=1)
+    gap = np.linalg.norm(target - b, axis=1)
     todo = candidates & ~move
-    tries = np.zeros(len(b), int)
+    tries = np.zeros(P, int)
     for _ in range(rounds):
         pick = independent(np.where(todo, gap + 1e-6, 0.0), quads)
         if not pick.any():
             break
-        for carry in (0.0, 0.5, 1.0):
-            top = np.where(pick[:, None], a + carry * shift, a)
-            pts = _restack(np.where((move | pick)[:, None], target, b), top, L)
-            ok = pick & ~_bad_columns(hm.hexes, pts, floor, P)
-            move, a = move | ok, np.where(ok[:, None], top, a)
-            pick &= ~ok
+        move, a, refused = _carry_out(hm, b, a, target, move, pick, np.arange(P), floor)
         # a refused node is offered again (its neighbours may have moved since), three times at most
-        tries[pick] += 1
+        tries[refused] += 1
         todo &= ~move & (tries < 3)
-    # neighbours inside together may only come out together: each connected patch of those left, at once
     left = candidates & ~move
     if left.any():
         e = quad_edges(quads)
         e = e[left[e[:, 0]] & left[e[:, 1]]]
         _, patch = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(P, P)), directed=False)
-        for carry in (0.0, 0.5, 1.0):
-            top = np.where(left[:, None], a + carry * shift, a)
-            pts = _restack(np.where((move | left)[:, None], target, b), top, L)
-            bad = _bad_columns(hm.hexes, pts, floor, P) & left
-            ok = left & ~np.isin(patch, patch[bad])
-            move, a = move | ok, np.where(ok[:, None], top, a)
-            left &= ~ok
+        move, a, _ = _carry_out(hm, b, a, target, move, left, patch, floor)
     return move, a
+
+
+def _carry_out(hm: HexMesh, b, a, target, move, offer, group, floor):
+    """Move the ``offer``ed bone-side nodes (P,) to their targets, each ``group`` (P,) all or none:
+    a group is taken when no element with one of its nodes falls below its floor.  A group refused
+    with its articular nodes in place tries again carrying them half, then all of the way along
+    (the column comes off the bone whole rather than tilting).  Returns ``move``, the articular
+    nodes, and the offers still refused."""
+    P, L = len(b), int(hm.node_layer.max())
+    shift = target - b
+    for carry in (0.0, 0.5, 1.0):
+        top = np.where(offer[:, None], a + carry * shift, a)
+        pts = _restack(np.where((move | offer)[:, None], target, b), top, L)
+        bad = _bad_columns(hm.hexes, pts, floor, P) & offer
+        ok = offer & ~np.isin(group, group[bad])
+        move, a = move | ok, np.where(ok[:, None], top, a)
+        offer = offer & ~ok
+    return move, a, offer
 
 
 def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptions()) -> tuple[HexMesh, dict]:

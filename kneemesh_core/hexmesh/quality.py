@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pyvista as pv
 
+from kneemesh_core.surfaces.metrics import crossing_edges
+
 #: The 12 edges of a VTK / C3D8 hexahedron.
 HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]])
 
@@ -60,8 +62,6 @@ def boundary_crossings(points: np.ndarray, hexes: np.ndarray) -> int:
     """Edges of the mesh's triangulated boundary that pass through another boundary face: a mesh
     whose elements are all fine can still fold over itself (two stretches of the cartilage edge
     projected onto overlapping bone), which no element metric sees."""
-    from kneemesh_core.surfaces.metrics import crossing_edges
-
     return crossing_edges(to_grid(points, hexes).extract_surface().triangulate())
 
 

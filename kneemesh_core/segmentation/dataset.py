@@ -18,7 +18,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from kneemesh_core.knee import load_knee
-from kneemesh_core.segmentation.preprocess import CANONICAL_TO_NET, NET_ORIENTATION
+from kneemesh_core.segmentation.preprocess import CANONICAL_TO_NET, NET_ORIENTATION, reorient_like
 from kneemesh_core.segmentation.synth import CARTILAGES, augment_geometry, synthesize
 
 
@@ -111,13 +111,8 @@ def synthetic_image(path: str | Path, seed: int) -> tuple[sitk.Image, sitk.Image
     from kneemesh_core.segmentation.synth import synthesize
 
     labels = load_knee(path).labels
-    oriented = sitk.DICOMOrient(labels, NET_ORIENTATION)
-    classes = CANONICAL_TO_NET[sitk.GetArrayFromImage(oriented)]
+    classes = subject_from_labels(labels, Path(path).name, subject_id(path)).labels
     arr = np.stack([synthesize(sl, np.random.default_rng(seed), p_intensity=0.0) for sl in classes])
     img = sitk.GetImageFromArray((arr * 1000).astype(np.float32))
-    img.CopyInformation(oriented)
-    code = sitk.DICOMOrientImageFilter.GetOrientationFromDirectionCosines(labels.GetDirection())
-    back = sitk.DICOMOrient(img, code)
-    image = sitk.GetImageFromArray(sitk.GetArrayViewFromImage(back).copy())
-    image.CopyInformation(labels)
-    return image, labels
+    img.CopyInformation(sitk.DICOMOrient(labels, NET_ORIENTATION))
+    return reorient_like(img, labels), labels

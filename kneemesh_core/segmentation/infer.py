@@ -109,8 +109,6 @@ def segment(volume: Volume, model: SegmentationModel, *, side: str | None = None
                                 "is this a sagittal knee MRI?") from exc
         raise KneeMeshError(exc.code, f"{Path(volume.source).name}, segmented: {exc.message}") from exc
     prob_img = sitk.Compose([from_slices(p, geo) for p in probs]) if probs is not None else None
-    if prob_img is not None:
-        prob_img.CopyInformation(volume.image)
     t3 = time.perf_counter()
     return Segmentation(knee, prob_img, {"preprocess": round(t1 - t0, 3), "inference": round(t2 - t1, 3),
                                          "postprocess": round(t3 - t2, 3), "total": round(t3 - t0, 3)})

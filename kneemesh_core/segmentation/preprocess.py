@@ -94,8 +94,14 @@ def from_slices(classes: np.ndarray, geo: SliceGeometry) -> sitk.Image:
         img = sitk.Resample(img, o, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
     else:
         img.CopyInformation(geo.oriented)
-    code = sitk.DICOMOrientImageFilter.GetOrientationFromDirectionCosines(geo.reference.GetDirection())
-    back = sitk.DICOMOrient(img, code)
+    return reorient_like(img, geo.reference)
+
+
+def reorient_like(image: sitk.Image, reference: sitk.Image) -> sitk.Image:
+    """``image`` (on the grid of ``reference`` reoriented to any axis order) back in the reference's
+    axis order, with the reference's size, spacing, origin and direction copied exactly."""
+    code = sitk.DICOMOrientImageFilter.GetOrientationFromDirectionCosines(reference.GetDirection())
+    back = sitk.DICOMOrient(image, code)
     out = sitk.GetImageFromArray(sitk.GetArrayViewFromImage(back).copy())
-    out.CopyInformation(geo.reference)
+    out.CopyInformation(reference)
     return out
