@@ -97,6 +97,8 @@ def main() -> None:
             src, out, dt = fut.result()
             results[src] = out
             times.append(dt)
+            if args.json:  # after every knee: a run that is cut off keeps what it measured
+                args.json.write_text(json.dumps(results, indent=1, default=float))
             bad = [t for t, f in out.items() if f["status"] != "ok"]
             if bad:
                 bar.console.print(f"[red]{Path(src).name}: failed {', '.join(bad)}[/]: " + "; ".join(
@@ -109,8 +111,6 @@ def main() -> None:
                     f"{', ' + out[t]['blend']['reason'] if 'frac_sj_at_least_0_5' not in out[t]['blend'] else ''}" for t in unblended))
             bar.advance(task)
 
-    if args.json:
-        args.json.write_text(json.dumps(results, indent=1, default=float))
     per = defaultdict(list)
     for out in results.values():
         for t, f in out.items():

@@ -11,7 +11,7 @@ import SimpleITK as sitk
 
 from conftest import OAI, PYMSKT_LEFT, SAMPLE, real
 from kneemesh_core.hexmesh import mesh_cartilage
-from kneemesh_core.hexmesh.optimize import scaled_jacobian
+from kneemesh_core.hexmesh.optimize import layer_quality
 from kneemesh_core.hexmesh.quality import hex_quality, passes_gate, to_grid
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.knee import load_knee
@@ -104,13 +104,20 @@ def test_phantom_plates_with_defects_pass_gate(phantoms, side):
         assert f["coverage"] >= 0.85 and abs(f["volume_error"]) <= 0.1, (tissue, f)
 
 
-def test_numpy_scaled_jacobian_matches_verdict():
-    rng = np.random.default_rng(0)
+@pytest.mark.parametrize("layers", [1, 4])
+def test_optimiser_layer_quality_matches_verdict(layers):
+    """The optimiser's own scaled Jacobian and edge ratio of the layer elements of each column equal
+    the gate's (Verdict's scaled Jacobian through VTK) on those elements, built as extrude builds them."""
+    rng = np.random.default_rng(layers)
     cube = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
-    pts = np.concatenate([cube + rng.normal(0, 0.15, cube.shape) + 3 * i for i in range(50)])
-    hexes = np.arange(len(pts)).reshape(-1, 8)
-    verdict = to_grid(pts, hexes).cell_quality("scaled_jacobian").cell_data["scaled_jacobian"]
-    np.testing.assert_allclose(scaled_jacobian(pts, hexes), verdict, atol=1e-9)
+    cols = cube + rng.normal(0, 0.15, (60, 8, 3))
+    sj, ratio = layer_quality(cols, layers)
+    frac = (np.arange(layers + 1) / layers)[:, None, None, None]
+    levels = cols[None, :, :4] + frac * (cols[None, :, 4:] - cols[None, :, :4])  # (L + 1, H, 4, 3)
+    elements = np.concatenate([levels[:-1], levels[1:]], axis=2).reshape(-1, 8, 3)
+    q = hex_quality(elements.reshape(-1, 3), np.arange(len(elements) * 8).reshape(-1, 8))  # what the gate reads
+    np.testing.assert_allclose(sj, q["scaled_jacobian"].reshape(layers, -1).min(0), atol=1e-9)
+    np.testing.assert_allclose(ratio, q["max_edge_ratio"].reshape(layers, -1).max(0), rtol=1e-9)
 
 
 def test_quality_catches_what_verdict_misses():

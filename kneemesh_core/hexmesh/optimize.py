@@ -13,41 +13,57 @@ from __future__ import annotations
 
 import numpy as np
 
-# Corner frames of the Verdict hex scaled Jacobian: node -> its three edge neighbours.
-_CORNERS = np.array([[0, 1, 3, 4], [1, 2, 0, 5], [2, 3, 1, 6], [3, 0, 2, 7],
-                     [4, 7, 5, 0], [5, 4, 6, 1], [6, 5, 7, 2], [7, 6, 4, 3]])
+
+def _sq(v: np.ndarray) -> np.ndarray:
+    """Squared length of vectors stored coordinate-first (3, ...)."""
+    return v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
 
 
 def _triple(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """a . (b x c) over the last axis (length 3), written out: numpy's cross is slow on small axes."""
-    return (a[..., 0] * (b[..., 1] * c[..., 2] - b[..., 2] * c[..., 1])
-            + a[..., 1] * (b[..., 2] * c[..., 0] - b[..., 0] * c[..., 2])
-            + a[..., 2] * (b[..., 0] * c[..., 1] - b[..., 1] * c[..., 0]))
+    """a . (b x c) for vectors stored coordinate-first (3, ...)."""
+    return a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2]) + a[2] * (b[0] * c[1] - b[1] * c[0])
 
 
-def _sq(v: np.ndarray) -> np.ndarray:
-    """Squared length over the last axis (length 3), written out (a reduction over 3 is slow)."""
-    return v[..., 0] * v[..., 0] + v[..., 1] * v[..., 1] + v[..., 2] * v[..., 2]
+def _min4(v: np.ndarray) -> np.ndarray:
+    """Least over the first axis (length 4): pairwise, faster than a reduction over so short an axis."""
+    return np.minimum(np.minimum(v[0], v[1]), np.minimum(v[2], v[3]))
 
 
-def scaled_jacobian(points: np.ndarray, hexes: np.ndarray | None = None) -> np.ndarray:
-    """Verdict's hex scaled Jacobian (H,) on numpy arrays: min over the 8 corners and the centre.
+def _max4(v: np.ndarray) -> np.ndarray:
+    return np.maximum(np.maximum(v[0], v[1]), np.maximum(v[2], v[3]))
 
-    ``points`` (P, 3) with ``hexes`` (H, 8), or the corner coordinates (H, 8, 3) directly.
 
-    Hand-written because it runs inside the optimisation loop on candidate node
-    positions that are not a mesh yet; the reported figures come from
-    pyvista/VTK (``cell_quality``), which this matches to rounding.
+_NEXT, _PREV = np.array([1, 2, 3, 0]), np.array([3, 0, 1, 2])
+
+
+def layer_quality(cols: np.ndarray, layers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Worst Verdict scaled Jacobian (H,) and largest edge ratio (H,) of the ``layers`` elements each
+    single-element column (H, 8, 3; C3D8 node order, bone side first) is cut into.
+
+    Hand-written rather than VTK's ``cell_quality`` because it is the column optimiser's inner loop,
+    run on candidate node positions that are not a mesh yet; it matches Verdict to rounding (tested).
+    It works level by level rather than element by element: a node's corner frame at a level (its
+    two in-plane edges and its column) is the same for the element above and the element below it,
+    so each of the (L + 1) x 4 corner Jacobians is computed once, and the centre frame's column axis
+    is the same for every layer.  Coordinates go first (3, ...) so every step runs on contiguous
+    rows (three times faster than on (..., 3) views).
     """
-    p = points if hexes is None else points[hexes]  # (H, 8, 3)
-    e = p[:, _CORNERS[:, 1:]] - p[:, _CORNERS[:, :1]]  # (H, 8 corners, 3 edges, 3)
-    length = np.sqrt(_sq(e))
-    corner = _triple(e[:, :, 0], e[:, :, 1], e[:, :, 2]) / np.maximum(length.prod(-1), 1e-30)
-    x1 = (p[:, 1] - p[:, 0]) + (p[:, 2] - p[:, 3]) + (p[:, 5] - p[:, 4]) + (p[:, 6] - p[:, 7])
-    x2 = (p[:, 3] - p[:, 0]) + (p[:, 2] - p[:, 1]) + (p[:, 7] - p[:, 4]) + (p[:, 6] - p[:, 5])
-    x3 = (p[:, 4] - p[:, 0]) + (p[:, 5] - p[:, 1]) + (p[:, 6] - p[:, 2]) + (p[:, 7] - p[:, 3])
-    norm = np.sqrt(_sq(x1) * _sq(x2) * _sq(x3))
-    return np.minimum(corner.min(1), _triple(x1, x2, x3) / np.maximum(norm, 1e-30))
+    c = np.ascontiguousarray(cols.transpose(2, 1, 0))  # (3, 8, H)
+    base, rise = c[:, :4], (c[:, 4:] - c[:, :4]) / layers  # (3, 4, H): one layer of each column edge
+    levels = base[:, None] + np.arange(layers + 1)[:, None, None] * rise[:, None]  # (3, L + 1, 4, H)
+    ahead = levels[:, :, _NEXT] - levels  # in-plane edge to the next node of the quad
+    la, lr = np.sqrt(_sq(ahead)), np.sqrt(_sq(rise))  # (L + 1, 4, H), (4, H)
+    corner = _triple(ahead, -ahead[:, :, _PREV], rise[:, None]) / np.maximum(la * la[:, _PREV] * lr, 1e-30)
+    corner = _min4(corner.transpose(1, 0, 2))  # (L + 1, H)
+    x1 = ahead[:, :, 0] - ahead[:, :, 2]  # (p1 - p0) + (p2 - p3) at each level
+    x2 = ahead[:, :, 1] - ahead[:, :, 3]  # (p2 - p1) + (p3 - p0)
+    x1, x2, x3 = x1[:, :-1] + x1[:, 1:], x2[:, :-1] + x2[:, 1:], rise.sum(1)[:, None]  # principal axes per layer
+    centre = _triple(x1, x2, x3) / np.maximum(np.sqrt(_sq(x1) * _sq(x2) * _sq(x3)), 1e-30)  # (L, H)
+    sj = np.minimum(np.minimum(corner[:-1], corner[1:]), centre).min(0)
+    lmax, lmin = _max4(la.transpose(1, 0, 2)), _min4(la.transpose(1, 0, 2))  # (L + 1, H)
+    longest = np.maximum(np.maximum(lmax[:-1], lmax[1:]), _max4(lr))
+    shortest = np.minimum(np.minimum(lmin[:-1], lmin[1:]), _min4(lr))
+    return sj, (longest / np.maximum(shortest, 1e-12)).max(0)
 
 
 def column_score(cols: np.ndarray, layers: int = 1) -> np.ndarray:
@@ -55,33 +71,22 @@ def column_score(cols: np.ndarray, layers: int = 1) -> np.ndarray:
     cut into ``layers`` layers: the worst scaled Jacobian of the layer elements (every layer: a
     middle layer can be worse than both ends, as one phantom's femoral cartilage showed), or less
     where the articular face shrinks (converging columns squeeze its edges while the Jacobian,
-    blind to scale, stays fine), or where the edge ratio grows."""
-    bottom = np.linalg.norm(cols[:, [1, 2, 3, 0]] - cols[:, :4], axis=2)
-    top = np.linalg.norm(cols[:, [5, 6, 7, 4]] - cols[:, 4:], axis=2)
+    blind to scale, stays fine), or where the edge ratio grows (``layers`` > 1)."""
+    bottom = np.linalg.norm(cols[:, _NEXT] - cols[:, :4], axis=2)
+    top = np.linalg.norm(cols[:, 4 + _NEXT] - cols[:, 4:], axis=2)
     shrink = 1.25 * top.min(1) / np.maximum(bottom.mean(1), 1e-12)
+    sj, ratio = layer_quality(cols, layers)
+    score = np.minimum(sj, shrink)
     if layers == 1:
-        return np.minimum(scaled_jacobian(cols), shrink)
-    rise = (cols[:, 4:] - cols[:, :4]) / layers
-    k = np.arange(layers + 1)[:, None, None, None]
-    levels = cols[None, :, :4] + k * rise[None]  # (L + 1, H, 4, 3)
-    elements = np.concatenate([levels[:-1], levels[1:]], axis=2).reshape(-1, 8, 3)  # (L * H, 8, 3)
-    score = np.minimum(scaled_jacobian(elements).reshape(layers, -1).min(0), shrink)
+        return score
     # the edge ratio counts fully while it scores >= 0.5; below that only a little (never more than
     # 0.0015), so the optimiser never gives up a scaled Jacobian >= 0.5 for an edge ratio
-    ratio = _edge_ratio(elements).reshape(layers, -1).max(0)
     er = 1.0 - 0.5 * (ratio - ER_FREE) / (ER_AT_HALF - ER_FREE)
     return np.minimum(score, np.where(er >= 0.5, er, 0.5 + 0.001 * np.maximum(er - 0.5, -1.5)))
 
 
 #: Edge ratios up to ER_FREE cost nothing; ER_AT_HALF scores 0.5, as low as the gate lets the Jacobian go.
 ER_FREE, ER_AT_HALF = 4.5, 5.8
-
-
-def _edge_ratio(h8: np.ndarray) -> np.ndarray:
-    """Longest over shortest edge of hexahedra (H, 8, 3)."""
-    a, b = np.array([0, 1, 2, 3, 4, 5, 6, 7, 0, 1, 2, 3]), np.array([1, 2, 3, 0, 5, 6, 7, 4, 4, 5, 6, 7])
-    e = _sq(h8[:, a] - h8[:, b])
-    return np.sqrt(e.max(1) / np.maximum(e.min(1), 1e-24))
 
 
 def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, layers: int = 1, sweeps: int = 8,
@@ -97,25 +102,11 @@ def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, l
     return candidates[k, np.arange(len(bottom))]
 
 
-def _node_min(values: np.ndarray, quads: np.ndarray, n: int) -> np.ndarray:
+def node_min(values: np.ndarray, quads: np.ndarray, n: int) -> np.ndarray:
     """Per node (n,), the least of the values (Q,) of the quads around it."""
     out = np.full(n, np.inf)
     np.minimum.at(out, quads.ravel(), np.repeat(values, 4))
     return out
-
-
-def _score_moves(cols: np.ndarray, quads: np.ndarray, active: np.ndarray, bottom: np.ndarray, top: np.ndarray,
-                 n: int, layers: int) -> np.ndarray:
-    """Per node (n,), the worst :func:`column_score` around it if it alone moved to (bottom, top) (P, 3);
-    only the columns ``active`` are scored (inf elsewhere)."""
-    aq, acols = quads[active], cols[active]
-    score = np.full(n, np.inf)
-    for slot in range(4):
-        trial = acols.copy()
-        trial[:, slot] = bottom[aq[:, slot]]
-        trial[:, 4 + slot] = top[aq[:, slot]]
-        np.minimum.at(score, aq[:, slot], column_score(trial, layers))
-    return score
 
 
 def independent(gain: np.ndarray, quads: np.ndarray) -> np.ndarray:
@@ -126,6 +117,64 @@ def independent(gain: np.ndarray, quads: np.ndarray) -> np.ndarray:
     around = np.full(n, -np.inf)
     np.maximum.at(around, quads.ravel(), np.repeat(key[quads].max(1), 4))
     return (gain > 0) & (key >= around)
+
+
+class MoveScores:
+    """What each node's candidate moves would score, for a coordinate ascent over a quad mesh
+    (the column optimiser here, the quad smoother in :mod:`.quadmesh`).
+
+    A move is scored as the worst ``score`` of the quads around the node with
+    its neighbours held still.  That depends only on the nodes sharing a quad
+    with it, so the scores are kept from sweep to sweep and worked out again
+    only where one of those, or the node, has moved (:meth:`moved`); all
+    candidates are scored in one ``score`` call per quad slot.
+
+    ``score`` maps the per-slot node data of M quads (M, 4, ...) to (M,).
+    """
+
+    def __init__(self, quads: np.ndarray, n_candidates: int, n: int, score):
+        self.quads, self.score = quads, score
+        self.scores = np.full((n_candidates, n), -np.inf)
+        self.fresh = np.zeros(n, dtype=bool)
+
+    def scored(self, corners: np.ndarray, candidates: np.ndarray, todo: np.ndarray) -> np.ndarray:
+        """The scores (K, n) of the candidates of the nodes ``todo`` (n,) bool (other columns stale).
+
+        corners : (Q, 4, ...) the node data of each quad as it stands.
+        candidates : (K, n, ...) where each node could move.
+        """
+        redo = todo & ~self.fresh
+        if redo.any():
+            k, quads = len(candidates), self.quads
+            out = np.full((len(todo), k), np.inf)
+            for slot in range(4):
+                sel = np.flatnonzero(redo[quads[:, slot]])
+                node = quads[sel, slot]
+                trial = np.repeat(corners[sel][None], k, axis=0)  # (K, S, 4, ...)
+                trial[:, :, slot] = candidates[:, node]
+                np.minimum.at(out, node, self.score(trial.reshape(-1, *corners.shape[1:])).reshape(k, -1).T)
+            self.scores[:, redo] = out.T[:, redo]
+            self.fresh |= redo
+        return self.scores
+
+    def best(self, corners: np.ndarray, candidates: np.ndarray, todo: np.ndarray,
+             current: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per node ``todo``, the best score (n,) and its candidate (n,; -1 where none beats ``current``
+        by 1e-6; the first of equals); arguments as :meth:`scored`."""
+        best, pick = current.copy(), np.full(len(todo), -1)
+        for k, score in enumerate(self.scored(corners, candidates, todo)):
+            better = todo & (score > best + 1e-6)
+            best[better], pick[better] = score[better], k
+        return best, pick
+
+    def moved(self, move: np.ndarray) -> None:
+        """The nodes ``move`` (n,) bool have moved: their scores and their neighbours' are stale."""
+        self.fresh[self.quads[move[self.quads].any(1)].ravel()] = False
+
+
+def _column_quads(c: np.ndarray, layers: int) -> np.ndarray:
+    """:func:`column_score` of columns given per quad slot as (bottom, top) pairs (M, 4, 2, 3)."""
+    return column_score(c.transpose(0, 2, 1, 3).reshape(-1, 8, 3), layers)
 
 
 def choose_columns(bottoms: np.ndarray, tops: np.ndarray, quads: np.ndarray, layers: int = 1, sweeps: int = 8,
@@ -149,27 +198,23 @@ def choose_columns(bottoms: np.ndarray, tops: np.ndarray, quads: np.ndarray, lay
     (P,) index of the chosen candidate per node.
     """
     n = bottoms.shape[1]
-    bottom, top = bottoms[0].copy(), tops[0].copy()
+    ends = np.stack([bottoms, tops], axis=2)  # (K, P, 2, 3)
+    now = ends[0].copy()
     choice = np.zeros(n, dtype=int)
+    moves = MoveScores(quads, len(ends), n, lambda c: _column_quads(c, layers))
     for _ in range(sweeps):
-        cols = np.concatenate([bottom[quads], top[quads]], axis=1)  # (Q, 8, 3)
-        current = _node_min(column_score(cols, layers), quads, n)
+        corners = now[quads]  # (Q, 4, 2, 3)
+        current = node_min(_column_quads(corners, layers), quads, n)
         todo = current < good
         if not todo.any():
             break
-        best, best_k = current.copy(), choice.copy()
-        active = np.flatnonzero(todo[quads].any(1))  # only columns around nodes being improved
-        for k in range(len(tops)):
-            score = _score_moves(cols, quads, active, bottoms[k], tops[k], n, layers)
-            better = todo & (score > best + 1e-6)
-            best[better], best_k[better] = score[better], k
-        move = independent(np.where(best_k != choice, best - current, 0.0), quads)
+        best, pick = moves.best(corners, ends, todo, current)
+        move = independent(np.where((pick >= 0) & (pick != choice), best - current, 0.0), quads)
         if not move.any():
             break
-        choice[move] = best_k[move]
-        idx = np.flatnonzero(move)
-        bottom[move] = bottoms[best_k[move], idx]
-        top[move] = tops[best_k[move], idx]
+        choice[move] = pick[move]
+        now[move] = ends[pick[move], np.flatnonzero(move)]
+        moves.moved(move)
     return choice
 
 
@@ -184,22 +229,23 @@ def settle(bottom: np.ndarray, top: np.ndarray, target: np.ndarray, quads: np.nd
     """
     n = len(top)
     top = top.copy()
+    fracs = (1 / 3, 2 / 3, 1.0)
+    moves = MoveScores(quads, len(fracs), n, lambda c: _column_quads(c, layers))
     for _ in range(sweeps):
         gap = np.linalg.norm(target - top, axis=1)
         todo = gap > 0.02
         if not todo.any():
             break
-        cols = np.concatenate([bottom[quads], top[quads]], axis=1)
-        current = _node_min(column_score(cols, layers), quads, n)
-        active = np.flatnonzero(todo[quads].any(1))
+        corners = np.stack([bottom, top], axis=1)[quads]  # (Q, 4, 2, 3)
+        current = node_min(_column_quads(corners, layers), quads, n)
+        cands = np.stack([np.stack([bottom, top + frac * (target - top)], axis=1) for frac in fracs])
         best_frac = np.zeros(n)
-        for frac in (1 / 3, 2 / 3, 1.0):
-            cand = top + frac * (target - top)
-            score = _score_moves(cols, quads, active, bottom, cand, n, layers)
+        for frac, score in zip(fracs, moves.scored(corners, cands, todo)):
             ok = todo & (score >= np.minimum(current, floor))
             best_frac[ok] = frac
         move = independent(best_frac * gap, quads)
         if not move.any():
             break
         top[move] += best_frac[move, None] * (target[move] - top[move])
+        moves.moved(move)
     return top

@@ -25,6 +25,7 @@ from scipy import ndimage as ndi
 from skimage.measure import find_contours
 
 from kneemesh_core.hexmesh.footprint import Footprint, enclosed_holes
+from kneemesh_core.hexmesh.optimize import MoveScores, independent, node_min
 
 
 #: Unit steps in the parameter plane that the node optimisers try.
@@ -357,20 +358,15 @@ def _optimise(points: np.ndarray, quads: np.ndarray, contour: np.ndarray, h: flo
     slid = [np.flatnonzero(on_poly == k) for k in range(len(polys))]
     arc = {k: _arc_project(polys[k], points[idx])[0] for k, idx in enumerate(slid) if len(idx)}
     stuck = contour & (on_poly < 0)
-
-    def node_min(q: np.ndarray) -> np.ndarray:
-        m = np.full(n, np.inf)
-        np.minimum.at(m, quads.ravel(), np.repeat(q, 4))
-        return m
-
     steps = (0.3, -0.3, 0.1, -0.1)  # contour nodes slide along their polyline
+    n_plain = 1 + 2 * len(EIGHT_DIRECTIONS)
+    moves = MoveScores(quads, n_plain + len(steps), n, _shape_of)
     for _ in range(sweeps):
-        current = node_min(_shape_of(points[quads]))
+        corners = points[quads]
+        current = node_min(_shape_of(corners), quads, n)
         todo = (current < good) & ~stuck
         if not todo.any():
             break
-        active = np.flatnonzero(todo[quads].any(1))  # only quads around nodes being improved
-        aq = quads[active]
         acc = np.zeros_like(points)
         np.add.at(acc, e[:, 0], points[e[:, 1]])
         np.add.at(acc, e[:, 1], points[e[:, 0]])
@@ -383,30 +379,16 @@ def _optimise(points: np.ndarray, quads: np.ndarray, contour: np.ndarray, h: flo
                 if len(idx):
                     c[idx] = _arc_point(polys[k], arc[k] + step * h)
             cands.append(c)
-        best, best_c = current.copy(), np.full(n, -1)
-        corners = points[aq]
-        for ci, c in enumerate(cands):
-            score = np.full(n, np.inf)
-            for slot in range(4):
-                trial = corners.copy()
-                trial[:, slot] = c[aq[:, slot]]
-                np.minimum.at(score, aq[:, slot], _shape_of(trial))
-            better = todo & (score > best + 1e-6)
-            best[better], best_c[better] = score[better], ci
-        gain = np.where(best_c >= 0, best - current, 0.0)
-        if not (gain > 0).any():
+        cands = np.stack(cands)
+        best, pick = moves.best(corners, cands, todo, current)
+        move = independent(np.where(pick >= 0, best - current, 0.0), quads)
+        if not move.any():
             break
-        key = gain + 1e-9 * (n - np.arange(n)) / n
-        around = np.full(n, -np.inf)
-        np.maximum.at(around, quads.ravel(), np.repeat(key[quads].max(1), 4))
-        move = (gain > 0) & (key >= around)
-        for ci, c in enumerate(cands):
-            sel = move & (best_c == ci)
-            points[sel] = c[sel]
-        n_plain = len(cands) - len(steps)
+        points[move] = cands[pick[move], np.flatnonzero(move)]
+        moves.moved(move)
         for k, idx in enumerate(slid):  # arc positions of the nodes that slid
             if len(idx):
-                chosen = best_c[idx]
+                chosen = pick[idx]
                 slid_now = move[idx] & (chosen >= n_plain)
                 arc[k][slid_now] += np.array(steps)[chosen[slid_now] - n_plain] * h
     return points
