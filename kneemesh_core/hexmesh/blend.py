@@ -36,14 +36,14 @@ import dataclasses
 
 import numpy as np
 import pyvista as pv
+import vtk
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from kneemesh_core.hexmesh.extrude import HexMesh
-from kneemesh_core.hexmesh.optimize import independent
+from kneemesh_core.hexmesh.optimize import independent, layer_quality
 from kneemesh_core.hexmesh.quadmesh import quad_edges
-from kneemesh_core.hexmesh.quality import hex_quality
 from kneemesh_core.surfaces.metrics import signed_distance
 
 #: Bone-side nodes this close to the bone count as fused, mm.
@@ -179,6 +179,13 @@ class _Bone:
         self.tree = cKDTree(self.surface.points)
         self.normals = np.asarray(self.surface.point_data["Normals"])
         self.sigma = sigma_mm
+        self.implicit = vtk.vtkImplicitPolyDataDistance()  # its locator is built once, here
+        self.implicit.SetInput(self.surface)
+
+    def signed(self, pts: np.ndarray) -> np.ndarray:
+        """Signed distance (N,) of points (N, 3) to the bone, mm: negative inside
+        (:func:`kneemesh_core.surfaces.metrics.signed_distance` with the locator kept)."""
+        return signed_distance(pts, self.surface, self.implicit)
 
     def closest(self, pts: np.ndarray) -> np.ndarray:
         return _closest(self.surface, pts)
@@ -207,12 +214,23 @@ def _rotate(v: np.ndarray, n_from: np.ndarray, n_to: np.ndarray) -> np.ndarray:
     return v * c + np.cross(k, v) + k * (k * v).sum(1, keepdims=True) / np.maximum(1.0 + c, 1e-9)
 
 
-def _bad_columns(hexes: np.ndarray, points: np.ndarray, floor: np.ndarray, P: int) -> np.ndarray:
-    """Columns (P,) with a node in an element (of ``hexes``, each with its ``floor``) below its floor."""
-    q = hex_quality(points, hexes)
-    bad = (q["scaled_jacobian"] < floor) | q["collapsed"]
-    cols = np.zeros(P, bool)
-    cols[np.unique(hexes[bad] % P)] = True
+def _bad_columns(quads: np.ndarray, b: np.ndarray, a: np.ndarray, floor: np.ndarray,
+                 elements: np.ndarray | None = None) -> np.ndarray:
+    """Columns (P,) with a node in an element below its ``floor`` (L * Q,), among ``elements``
+    (L * Q,) bool or all.  The layers run straight between the bone-side and articular nodes
+    ``b``, ``a`` (P, 3) (:func:`_restack`), so the column optimiser's :func:`.optimize.layer_quality`
+    scores them: the gate's Verdict scaled Jacobian without building a VTK grid each time
+    (0 where an edge has collapsed, below every floor)."""
+    q = len(quads)
+    floor = floor.reshape(-1, q)
+    mask = None if elements is None else elements.reshape(-1, q)
+    sel = np.arange(q) if mask is None else np.flatnonzero(mask.any(0))
+    sj, _ = layer_quality(np.concatenate([b[quads[sel]], a[quads[sel]]], axis=1), len(floor))
+    bad = sj < floor[:, sel]
+    if mask is not None:
+        bad &= mask[:, sel]
+    cols = np.zeros(len(b), bool)
+    cols[quads[sel[bad.any(0)]].ravel()] = True
     return cols
 
 
@@ -220,13 +238,15 @@ def fuse(hm: HexMesh, bone: "_Bone", opts: BlendOptions = BlendOptions()) -> tup
     """Move bone-side nodes onto the bone where the elements allow; returns the mesh and the fused mask (P,)."""
     P, L = _columns(hm)
     b, a = hm.points[:P], hm.points[L * P:]
+    quads = _layer0_quads(hm)
     target = bone.closest(b)
     move = np.linalg.norm(target - b, axis=1) <= opts.fuse_max_mm
     # the outermost ring may drop to 0.2 (blending then keeps it at its edge floor or gives up there); the rest keeps 0.5
-    floor = np.where(hm.ring == 0, 0.2, np.minimum(hex_quality(hm.points, hm.hexes)["scaled_jacobian"], 0.5))
+    sj = layer_quality(np.concatenate([b[quads], a[quads]], axis=1), L)[0].ravel()  # as _bad_columns scores
+    floor = np.where(hm.ring == 0, 0.2, np.minimum(sj, 0.5))
     move = _accept(hm, b, a, target, move, floor, opts.max_backoffs)
     # a bone-side node left inside the bone should still come out: its outer two rings may drop to 0.2
-    inside = ~move & (signed_distance(b, bone.surface) < -FUSED_TOL_MM)
+    inside = ~move & (bone.signed(b) < -FUSED_TOL_MM)
     floor = np.where(hm.ring <= 1, 0.2, floor)
     if inside.any():
         move = _accept(hm, b, a, target, move | inside, floor, opts.max_backoffs, fixed=move)
@@ -254,10 +274,11 @@ def _lift(hm: HexMesh, b: np.ndarray, a: np.ndarray, bone: "_Bone", floor: np.nd
     Returns the bone-side and articular nodes (P, 3).
     """
     P, L = len(b), int(hm.node_layer.max())
-    e = quad_edges(_layer0_quads(hm))
+    quads = _layer0_quads(hm)
+    e = quad_edges(quads)
     for _ in range(rounds):  # each way out is only right near where it was measured: measure again
         pts = _restack(b, a, L).reshape(L + 1, P, 3)
-        sd = signed_distance(pts.reshape(-1, 3), bone.surface).reshape(L + 1, P)
+        sd = bone.signed(pts.reshape(-1, 3)).reshape(L + 1, P)
         depth = -sd.min(0)
         need = np.where(depth > FUSED_TOL_MM, depth + 0.01, 0.0)
         if not need.any():
@@ -273,10 +294,9 @@ def _lift(hm: HexMesh, b: np.ndarray, a: np.ndarray, bone: "_Bone", floor: np.nd
             near = (lift > 0)[hm.hexes % P].any(1)  # only these elements change
             for d in (normal, shortest):
                 nb, na = b + lift[:, None] * d, a + lift[:, None] * d
-                moved = _restack(nb, na, L)
-                if _bad_columns(hm.hexes[near], moved, floor[near], P).any():
+                if _bad_columns(quads, nb, na, floor, near).any():
                     continue
-                left = -signed_distance(moved.reshape(L + 1, P, 3)[:, lift > 0].reshape(-1, 3), bone.surface).min()
+                left = -bone.signed(_restack(nb, na, L).reshape(L + 1, P, 3)[:, lift > 0].reshape(-1, 3)).min()
                 if best is None or left < best[0]:
                     best = (left, nb, na)
         if best is None or best[0] >= depth.max():
@@ -300,10 +320,9 @@ def _spread(values: np.ndarray, e: np.ndarray, shares) -> np.ndarray:
 def _accept(hm: HexMesh, b, a, target, move, floor, rounds: int, fixed=None) -> np.ndarray:
     """The nodes (P,) whose moves to ``target`` keep every element at its floor: offending moves
     are dropped round by round (``fixed`` ones never)."""
-    P, L = len(b), int(hm.node_layer.max())
+    quads = _layer0_quads(hm)
     for _ in range(rounds):
-        pts = _restack(np.where(move[:, None], target, b), a, L)
-        bad = _bad_columns(hm.hexes, pts, floor, P) & move
+        bad = _bad_columns(quads, np.where(move[:, None], target, b), a, floor) & move
         if fixed is not None:
             bad &= ~fixed
         if not bad.any():
@@ -353,8 +372,7 @@ def _carry_out(hm: HexMesh, b, a, target, move, offer, group, floor):
     shift = target - b
     for carry in (0.0, 0.5, 1.0):
         top = np.where(offer[:, None], a + carry * shift, a)
-        pts = _restack(np.where((move | offer)[:, None], target, b), top, L)
-        bad = _bad_columns(hm.hexes, pts, floor, P) & offer
+        bad = _bad_columns(_layer0_quads(hm), np.where((move | offer)[:, None], target, b), top, floor) & offer
         ok = offer & ~np.isin(group, group[bad])
         move, a = move | ok, np.where(ok[:, None], top, a)
         offer = offer & ~ok
@@ -389,8 +407,7 @@ def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptio
     tan = np.tan(np.radians(opts.angle_deg))
     zone = (ring < opts.rings) & (disp > 0)
     moving = zone[hm.hexes % P].any(1)  # only these elements can change
-    hexes, cols = hm.hexes[moving], np.flatnonzero(zone)
-    signed = (lambda x: signed_distance(x, bone.surface)) if bone is not None else None
+    cols = np.flatnonzero(zone)
 
     def place(scale: np.ndarray) -> np.ndarray:
         d = (disp * scale)[:, None] * out
@@ -413,10 +430,10 @@ def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptio
         return _restack(new_b, new_b + new_col, L)
 
     def offending(pts: np.ndarray, scale: np.ndarray) -> np.ndarray:
-        bad = _bad_columns(hexes, pts, floor[moving], P)
-        if signed is not None:  # no node of a blended column may end up inside the bone
+        bad = _bad_columns(quads, pts[:P], pts[L * P:], floor, moving)
+        if bone is not None:  # no node of a blended column may end up inside the bone
             above = pts.reshape(L + 1, P, 3)[1:, cols].reshape(-1, 3)
-            inside = (signed(above) < -FUSED_TOL_MM).reshape(L, -1).any(0)
+            inside = (bone.signed(above) < -FUSED_TOL_MM).reshape(L, -1).any(0)
             bad[cols[inside]] = True
         return bad & (scale > 0) & zone
 

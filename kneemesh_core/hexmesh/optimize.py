@@ -37,8 +37,9 @@ _NEXT, _PREV = np.array([1, 2, 3, 0]), np.array([3, 0, 1, 2])
 
 
 def layer_quality(cols: np.ndarray, layers: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Worst Verdict scaled Jacobian (H,) and largest edge ratio (H,) of the ``layers`` elements each
-    single-element column (H, 8, 3; C3D8 node order, bone side first) is cut into.
+    """Verdict scaled Jacobian (L, H) and edge ratio (L, H; longest over shortest edge) of the
+    ``layers`` elements each single-element column (H, 8, 3; C3D8 node order, bone side first)
+    is cut into, layer 0 at the bone.
 
     Hand-written rather than VTK's ``cell_quality`` because it is the column optimiser's inner loop,
     run on candidate node positions that are not a mesh yet; it matches Verdict to rounding (tested).
@@ -59,11 +60,11 @@ def layer_quality(cols: np.ndarray, layers: int = 1) -> tuple[np.ndarray, np.nda
     x2 = ahead[:, :, 1] - ahead[:, :, 3]  # (p2 - p1) + (p3 - p0)
     x1, x2, x3 = x1[:, :-1] + x1[:, 1:], x2[:, :-1] + x2[:, 1:], rise.sum(1)[:, None]  # principal axes per layer
     centre = _triple(x1, x2, x3) / np.maximum(np.sqrt(_sq(x1) * _sq(x2) * _sq(x3)), 1e-30)  # (L, H)
-    sj = np.minimum(np.minimum(corner[:-1], corner[1:]), centre).min(0)
+    sj = np.minimum(np.minimum(corner[:-1], corner[1:]), centre)
     lmax, lmin = _max4(la.transpose(1, 0, 2)), _min4(la.transpose(1, 0, 2))  # (L + 1, H)
     longest = np.maximum(np.maximum(lmax[:-1], lmax[1:]), _max4(lr))
     shortest = np.minimum(np.minimum(lmin[:-1], lmin[1:]), _min4(lr))
-    return sj, (longest / np.maximum(shortest, 1e-12)).max(0)
+    return sj, longest / np.maximum(shortest, 1e-12)
 
 
 def column_score(cols: np.ndarray, layers: int = 1) -> np.ndarray:
@@ -76,12 +77,12 @@ def column_score(cols: np.ndarray, layers: int = 1) -> np.ndarray:
     top = np.linalg.norm(cols[:, 4 + _NEXT] - cols[:, 4:], axis=2)
     shrink = 1.25 * top.min(1) / np.maximum(bottom.mean(1), 1e-12)
     sj, ratio = layer_quality(cols, layers)
-    score = np.minimum(sj, shrink)
+    score = np.minimum(sj.min(0), shrink)
     if layers == 1:
         return score
     # the edge ratio counts fully while it scores >= 0.5; below that only a little (never more than
     # 0.0015), so the optimiser never gives up a scaled Jacobian >= 0.5 for an edge ratio
-    er = 1.0 - 0.5 * (ratio - ER_FREE) / (ER_AT_HALF - ER_FREE)
+    er = 1.0 - 0.5 * (ratio.max(0) - ER_FREE) / (ER_AT_HALF - ER_FREE)
     return np.minimum(score, np.where(er >= 0.5, er, 0.5 + 0.001 * np.maximum(er - 0.5, -1.5)))
 
 

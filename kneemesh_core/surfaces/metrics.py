@@ -55,10 +55,16 @@ def crossing_edges(surf: pv.PolyData) -> int:
     return int(len(np.unique(ray[inside & ~own])))
 
 
-def signed_distance(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
-    """Signed distance (mm) of each point (N, 3) to a closed ``surface``: negative inside."""
-    f = vtk.vtkImplicitPolyDataDistance()
-    f.SetInput(surface)
+def signed_distance(points: np.ndarray, surface: pv.PolyData,
+                    implicit: vtk.vtkImplicitPolyDataDistance | None = None) -> np.ndarray:
+    """Signed distance (mm) of each point (N, 3) to a closed ``surface``: negative inside.
+
+    ``implicit``: that surface's ``vtkImplicitPolyDataDistance``, for callers that ask many times
+    (building its locator is most of the cost of a small query)."""
+    f = implicit
+    if f is None:
+        f = vtk.vtkImplicitPolyDataDistance()
+        f.SetInput(surface)
     out = vtk.vtkDoubleArray()
     f.FunctionValue(numpy_to_vtk(np.ascontiguousarray(points, dtype=float), deep=True), out)
     return vtk_to_numpy(out).copy()
