@@ -207,6 +207,26 @@ class _Bone:
         return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
+class _RowMemo:
+    """A row-wise function of row-wise arrays (each (N, ...)), worked out again only for the rows
+    whose inputs changed since the last call (the same N rows each call)."""
+
+    def __init__(self, fn):
+        self.fn, self.key, self.value = fn, None, None
+
+    def __call__(self, *args: np.ndarray) -> np.ndarray:
+        key = np.concatenate([np.asarray(a, float).reshape(len(a), -1) for a in args], axis=1)
+        if self.key is None:
+            self.value = np.asarray(self.fn(*args))
+        else:
+            changed = (key != self.key).any(1)
+            if changed.any():
+                self.value = self.value.copy()
+                self.value[changed] = self.fn(*(a[changed] for a in args))
+        self.key = key
+        return self.value
+
+
 def _rotate(v: np.ndarray, n_from: np.ndarray, n_to: np.ndarray) -> np.ndarray:
     """Rows of ``v`` rotated by the smallest rotation taking unit ``n_from`` to unit ``n_to`` (Rodrigues)."""
     k = np.cross(n_from, n_to)
@@ -408,15 +428,20 @@ def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptio
     zone = (ring < opts.rings) & (disp > 0)
     moving = zone[hm.hexes % P].any(1)  # only these elements can change
     cols = np.flatnonzero(zone)
+    # the back-off loop changes a few columns a round: bone queries are made again only for those
+    if bone is not None:
+        slide_on, normal_at, signed_at = _RowMemo(bone.slide), _RowMemo(bone.normal), _RowMemo(bone.signed)
 
     def place(scale: np.ndarray) -> np.ndarray:
         d = (disp * scale)[:, None] * out
         new_b = b + opts.bone_share * d
         new_col = column.copy()
         slide = fused & zone  # fused feet slide along the bone, the others along their tangent plane
+        if slide.any():
+            new_b[slide] = slide_on(b[slide], opts.bone_share * d[slide])
+        n_new = normal_at(new_b) if bone is not None else normal
         if slide.any():  # the column rolls with the bone as its foot slides over it
-            new_b[slide] = bone.slide(b[slide], opts.bone_share * d[slide])
-            new_col[slide] = _rotate(column[slide], n_foot[slide], bone.normal(new_b[slide]))
+            new_col[slide] = _rotate(column[slide], n_foot[slide], n_new[slide])
         # the articular surface comes down to the bone at the angle: thickness capped by the distance to the edge
         s = cKDTree(new_b[edge_ids]).query(new_b)[0]
         cap = height * opts.edge_height + s * tan
@@ -426,14 +451,14 @@ def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptio
         # a sloping top then split the slope between its bottom and its top (67.5/112.5 deg, not 45/135)
         slope = np.radians(opts.angle_deg) * np.clip((height - cap) / np.maximum(height * (1 - opts.edge_height), 1e-9), 0, 1)
         lean = np.where(zone, scale * np.tan(slope / 2), 0.0) * np.linalg.norm(new_col, axis=1)
-        new_col += lean[:, None] * _tangent(out, bone.normal(new_b) if bone is not None else normal)
+        new_col += lean[:, None] * _tangent(out, n_new)
         return _restack(new_b, new_b + new_col, L)
 
     def offending(pts: np.ndarray, scale: np.ndarray) -> np.ndarray:
         bad = _bad_columns(quads, pts[:P], pts[L * P:], floor, moving)
         if bone is not None:  # no node of a blended column may end up inside the bone
             above = pts.reshape(L + 1, P, 3)[1:, cols].reshape(-1, 3)
-            inside = (bone.signed(above) < -FUSED_TOL_MM).reshape(L, -1).any(0)
+            inside = (signed_at(above) < -FUSED_TOL_MM).reshape(L, -1).any(0)
             bad[cols[inside]] = True
         return bad & (scale > 0) & zone
 
