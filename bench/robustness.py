@@ -34,10 +34,13 @@ def mesh_knee(source: str, element_size: float, fallbacks: bool = True, blend: b
     """All four cartilages of one knee (a path, or 'phantom:SEED:SIDE:SEVERITY'); report entries.
 
     With ``blend``, each cartilage that passes the gate is then blended and fused onto its bone
-    (reconstructed as ``kneemesh mesh`` does); its entry gains ``blend`` and ``fused_fraction``.
+    (reconstructed as ``kneemesh mesh`` does); its entry gains ``blend`` and ``fused_fraction``;
+    then each bone gives way where its cartilages still dip into it, as the job's conform step
+    does, and the entries gain ``bone_conform``.
     """
     warnings.filterwarnings("ignore")
     from kneemesh_core.hexmesh import HexOptions, blend_cartilage, mesh_cartilage
+    from kneemesh_core.hexmesh.conform import conform_bone
     from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct
     from kneemesh_core.tissues import BONE_OF
     from kneemesh_core.io import Volume
@@ -54,6 +57,7 @@ def mesh_knee(source: str, element_size: float, fallbacks: bool = True, blend: b
         knee = load_knee(source)
     out = {}
     bones: dict = {}
+    grids: dict = defaultdict(dict)
     for tissue in CARTILAGES:
         t = time.perf_counter()
         try:
@@ -64,11 +68,19 @@ def mesh_knee(source: str, element_size: float, fallbacks: bool = True, blend: b
                 bone = BONE_OF[tissue]
                 if bone not in bones:
                     bones[bone] = reconstruct(knee.labels, bone, SurfaceOptions())[0]
-                facts = {**blend_cartilage(cm, bones[bone]).facts, "status": "ok"}
+                cm = blend_cartilage(cm, bones[bone])
+                facts = {**cm.facts, "status": "ok"}
+                grids[bone][tissue] = cm.grid()
         except Exception as exc:  # noqa: BLE001 - the benchmark records every failure
             facts = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
         facts["seconds"] = time.perf_counter() - t
         out[tissue] = facts
+    for bone, meshes in grids.items():
+        t = time.perf_counter()
+        _, done = conform_bone(bones[bone], meshes)
+        for tissue, f in done["cartilages"].items():
+            out[tissue]["bone_conform"] = {**f, "bone_applied": done["applied"], "bone_vertices_moved": done["vertices_moved"],
+                                           "seconds": time.perf_counter() - t}
     return source, out, time.perf_counter() - t0
 
 
@@ -159,7 +171,7 @@ def blend_table(per: dict[str, list[dict]]) -> None:
     for col in ("tissue", "blend passed", "min SJ: median (worst) [unblended]", "% SJ>=0.5: median (worst)",
                 "rings>=2 min SJ (worst)", "ring 0 min SJ: median", "edge angle deg: median of medians (range)",
                 "fused: median (worst)", "full / perimeter / partial / none", "self-int max", "penetration mm max",
-                "blend s median"):
+                "after bone conform: passed, penetration max, fused worst", "blend s median"):
         table.add_column(col)
     for t in CARTILAGES:
         b = [f for f in per[t] if "blend" in f and "frac_sj_at_least_0_5" in f["blend"]]
@@ -173,12 +185,17 @@ def blend_table(per: dict[str, list[dict]]) -> None:
         ang = np.array([f["blend"]["angle_reached_deg"]["median"] for f in b])
         fused = np.array([f["fused_fraction"] for f in b])
         kinds = Counter(f["blend"].get("fusion") for f in b if f["blend"]["passed"])
+        c = [f for f in b if "bone_conform" in f]
+        conformed = sum(f["blend"]["passed"] or (f["blend"]["applied"] and f["bone_conform"]["penetration_conformed_mm"] <= 0.05)
+                        for f in c)
         table.add_row(t, f"{sum(f['blend']['passed'] for f in b)}/{len(per[t])}", f"{np.median(sj):.3f} ({sj.min():.3f}) [{np.median(raw):.3f}]",
                       f"{np.median(good):.2f} ({good.min():.2f})", f"{inner.min():.3f}", f"{np.median(ring0):.3f}",
                       f"{np.median(ang):.1f} ({ang.min():.1f}-{ang.max():.1f})", f"{np.median(fused):.3f} ({fused.min():.3f})",
                       " / ".join(str(kinds.get(k, 0)) for k in ("full", "perimeter", "partial", "none")),
                       str(max(f["blend"]["self_intersections"] for f in b)),
                       f"{max(f['blend']['bone_penetration_mm'] or 0 for f in b):.3f}",
+                      f"{conformed}/{len(per[t])}, {max((f['bone_conform']['penetration_conformed_mm'] for f in c), default=0):.3f}, "
+                      f"{min((f['bone_conform']['fused_fraction_conformed'] for f in c), default=1):.3f}",
                       f"{np.median([f['blend']['seconds'] for f in b]):.2f}")
     console.print(table)
 

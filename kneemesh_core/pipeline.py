@@ -11,8 +11,11 @@ independent of each other, so a runner may run them in parallel:
    need the bone surfaces); each writes that tissue's mesh and returns its
    report entry (a failure is an entry with ``status: "failed"`` and a reason,
    never an exception);
-3. ``report`` gathers the entries into ``report.json``;
-4. ``bundle`` (optional) zips the outputs into ``bundle.zip`` and lists every
+3. ``conform`` (with blending, when bones and cartilage are both meshed) lets
+   each bone surface give way where a fused cartilage still dips into it
+   (:mod:`kneemesh_core.hexmesh.conform`), rewriting that bone's files;
+4. ``report`` gathers the entries into ``report.json``;
+5. ``bundle`` (optional) zips the outputs into ``bundle.zip`` and lists every
    artifact with its size and SHA-256 in ``artifacts.json``.
 
 :func:`run_step` runs one step and records it in ``steps/<step>.json``
@@ -46,6 +49,7 @@ from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.io import read_label_map, read_volume, write_image
 from kneemesh_core.knee import canonicalise, describe, describe_image
 from kneemesh_core.hexmesh import BlendOptions, HexOptions, blend_cartilage, mesh_cartilage
+from kneemesh_core.hexmesh.conform import conform_bone
 from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, TISSUES, resolve_convention
 
@@ -55,7 +59,7 @@ REPORT_FILE = "report.json"
 BUNDLE_FILE = "bundle.zip"
 MANIFEST_FILE = "artifacts.json"
 STEPS_DIR = "steps"
-INGEST, SEGMENT, REPORT, BUNDLE = "ingest", "segment", "report", "bundle"
+INGEST, SEGMENT, CONFORM, REPORT, BUNDLE = "ingest", "segment", "conform", "report", "bundle"
 INPUT_TYPES = ("labels", "image")
 GROUPS = {"bones": BONES, "cartilage": CARTILAGES, "all": TISSUES}
 # What the bundle carries: labels used, meshes, surfaces, the report (later: attachments, decks).
@@ -210,10 +214,45 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
     return entry
 
 
-def write_report(out_dir: str | os.PathLike, entries: dict[str, dict]) -> dict:
-    """Stage 3: ``report.json`` from ``job.json`` and the tissue entries."""
+def conform_bones(out_dir: str | os.PathLike, options: dict) -> dict:
+    """Stage 3: each bone surface gives way where the accepted meshes of its cartilages still lie
+    inside it (:func:`.hexmesh.conform.conform_bone`); the bone's files are rewritten (atomically)
+    only where it changed.  Returns what was done per bone.  Idempotent: a second run finds no
+    cartilage inside and changes nothing."""
+    opts = JobOptions.from_dict(options)
+    folder = Path(out_dir) / "meshes"
+    done = {}
+    for bone in BONES:
+        files = [folder / f"{bone}.vtp"] + ([folder / f"{bone}.stl"] if opts.stl else [])
+        grids = {t: pv.read(folder / f"{t}.vtu") for t in CARTILAGES
+                 if BONE_OF[t] == bone and (folder / f"{t}.vtu").exists()}
+        if not files[0].exists() or not grids:
+            continue
+        try:
+            surface, facts = conform_bone(pv.read(files[0]), grids)
+        except Exception as exc:  # the bone stays as meshed; the knee goes on
+            done[bone] = {"applied": False, "reason": f"{type(exc).__name__}: {exc}", "cartilages": {}}
+            continue
+        if facts["applied"]:
+            for f in files:
+                _atomic_save_mesh(surface, f)
+        done[bone] = facts
+    return done
+
+
+def write_report(out_dir: str | os.PathLike, entries: dict[str, dict], conformed: dict | None = None) -> dict:
+    """Stage 4: ``report.json`` from ``job.json``, the tissue entries and what :func:`conform_bones`
+    did (each bone's entry gains ``conformed``, each of its cartilages' ``bone_conform``)."""
     out = Path(out_dir)
     job = json.loads((out / JOB_FILE).read_text())
+    entries = {t: dict(e) for t, e in entries.items()}
+    for bone, facts in (conformed or {}).items():
+        per = facts["cartilages"]
+        if bone in entries:
+            entries[bone]["conformed"] = {k: v for k, v in facts.items() if k != "cartilages"}
+        for t, f in per.items():
+            if t in entries:
+                entries[t]["bone_conform"] = f
     report = {
         **job,
         "tissues": {t: entries[t] for t in TISSUES if t in entries},
@@ -234,6 +273,8 @@ def plan(options: JobOptions) -> list[tuple[str, ...]]:
         steps = tuple(_longest_first(t for t in tissues if t in group))
         if steps:
             stages.append(steps)
+    if options.blend is not None and set(tissues) >= set(BONES) | set(CARTILAGES):
+        stages.append((CONFORM,))
     stages.append((REPORT,))
     if options.bundle:
         stages.append((BUNDLE,))
@@ -291,10 +332,13 @@ def run_step(
                 if input_path is None:
                     raise KneeMeshError("bad_option", "the segment step needs the input image.")
                 result = segment_input(input_path, out_dir, JobOptions.from_dict(options))
+            elif step == CONFORM:
+                result = conform_bones(out_dir, options)
             elif step == REPORT:
                 opts = JobOptions.from_dict(options)
                 entries = {t: read_step(out_dir, t)["result"] for t in opts.tissues()}
-                result = write_report(out_dir, entries)["summary"]
+                conformed = read_step(out_dir, CONFORM) if CONFORM in sum(plan(opts), ()) else None
+                result = write_report(out_dir, entries, conformed and conformed["result"])["summary"]
             elif step == BUNDLE:
                 result = {"artifacts": len(bundle(out_dir))}
             else:

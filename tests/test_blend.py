@@ -8,6 +8,7 @@ import pyvista as pv
 
 from conftest import OAI, PYMSKT_RIGHT, real
 from kneemesh_core.hexmesh import BlendOptions, HexOptions, blend_cartilage, mesh_cartilage
+from kneemesh_core.hexmesh.conform import conform_bone
 from kneemesh_core.knee import load_knee
 from kneemesh_core.pipeline import JobOptions
 from kneemesh_core.surfaces.metrics import crossing_edges, signed_distance
@@ -77,3 +78,25 @@ def test_crossing_edges_finds_overlaps():
 def test_no_blend_option_round_trips():
     assert JobOptions.from_dict(JobOptions(blend=None).to_dict()).blend is None
     assert JobOptions.from_dict(JobOptions().to_dict()).blend == BlendOptions()
+
+
+def test_bone_gives_way_where_a_fused_cartilage_stays_inside_it():
+    """OAI 9332151_96m: its bone mesh bulges over the medial tibial rim, and 1.1 mm of cartilage
+    stays inside it after fusion (moving it out would crush its elements). The tibia gives way
+    there, keeping its triangles, closed and uncrossed; a cartilage not inside changes nothing."""
+    knee = load_knee(real(OAI / "OAI_AKOA_9332151_96m.nii.gz"))
+    tibia = reconstruct(knee.labels, "tibia", SurfaceOptions())[0]
+    tissue = "medial_tibial_cartilage"
+    cm = blend_cartilage(mesh_cartilage(knee.labels, tissue, HexOptions()), tibia)
+    assert cm.facts["blend"]["bone_penetration_mm"] > 0.5  # the case this is for
+    conformed, facts = conform_bone(tibia, {tissue: cm.grid()})
+    per = facts["cartilages"][tissue]
+    assert facts["applied"] and per["penetration_mm"] > 0.5 and per["penetration_conformed_mm"] <= 0.05, facts
+    assert signed_distance(cm.mesh.points, conformed).min() >= -0.05
+    assert np.array_equal(conformed.faces, tibia.faces) and conformed.n_points == tibia.n_points
+    assert crossing_edges(conformed) <= crossing_edges(tibia)
+    dent = np.linalg.norm(conformed.points - tibia.points, axis=1)
+    assert 0 < (dent > 0).sum() <= 100 and dent.max() <= 2.0  # a local dent, not a new bone
+    assert per["fused_fraction_conformed"] >= 0.9
+    again, facts = conform_bone(conformed, {tissue: cm.grid()})  # little left to do a second time
+    assert facts["cartilages"][tissue]["penetration_mm"] <= 0.05 and facts["max_dent_mm"] <= 0.1

@@ -222,7 +222,7 @@ def create_app(settings: Settings | None = None, runner=None) -> FastAPI:
 
     @app.get("/v1/jobs/{job_id}", response_model=schemas.JobStatus, responses=ERRORS, tags=["jobs"])
     def get_job(request: Request, rec: JobRecord = Depends(own_job)):
-        """State, queue position, progress of every step (ingest, each bone, each cartilage, report, bundle), errors."""
+        """State, queue position, progress of every step (ingest, segment, each bone, each cartilage, conform, report, bundle), errors."""
         return status(request, rec)
 
     @app.delete("/v1/jobs/{job_id}", response_model=schemas.JobStatus, responses=ERRORS, tags=["jobs"])
