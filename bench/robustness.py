@@ -1,6 +1,6 @@
 """Cartilage meshing robustness: every label map of a folder or glob, and phantoms, through the mesher.
 
-    .venv/bin/python bench/robustness.py [MAPS_OR_GLOBS ...] [--phantoms N] [--workers 2] [--element-size 1.0]
+    .venv/bin/python bench/robustness.py [MAPS_OR_GLOBS ...] [--phantoms N [--first-phantom S]] [--workers 2] [--element-size 1.0]
 
 Default maps: every real label map in ../shared/data/real (pymskt and oai_labels).
 Prints the success rate (quality gate passed), how many also meet the fidelity targets, a quality table per tissue
@@ -88,6 +88,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("maps", nargs="*")
     ap.add_argument("--phantoms", type=int, default=0, help="also mesh N phantoms across sides and severities")
+    ap.add_argument("--first-phantom", type=int, default=0, help="seed of the first phantom (to split a long run)")
     ap.add_argument("--no-real", action="store_true", help="phantoms only")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--element-size", type=float, default=1.0)
@@ -99,7 +100,8 @@ def main() -> None:
     if not sources and not args.no_real:
         sources = [str(p) for p in sorted((REAL / "pymskt" / "labels").glob("*.nrrd"))
                    + sorted((REAL / "oai_labels").glob("*.nii.gz"))]
-    sources += [f"phantom:{i}:{'left' if i % 2 else 'right'}:{i % 4}" for i in range(args.phantoms)]
+    sources += [f"phantom:{i}:{'left' if i % 2 else 'right'}:{i % 4}"
+                for i in range(args.first_phantom, args.first_phantom + args.phantoms)]
     results: dict[str, dict] = {}
     times = []
     with Progress(console=console) as bar, ProcessPoolExecutor(args.workers) as pool:
