@@ -74,6 +74,10 @@ FALLBACKS: tuple[tuple[str, dict], ...] = (
     ("deeper_inset", {"inset": 0.8}),
     ("smaller_elements", {"element_size_factor": 0.75}),
     ("closed_mask", {"closing_voxels": 3}),
+    # Last, for fidelity: smaller elements follow a thin rim and a curved surface closer, and
+    # reading the rim's heights inside keeps them valid where smaller elements alone dip below
+    # 0.5 (OAI 9171097_96m FC and 9364232_96m LTC pass every fidelity target only this way).
+    ("smaller_elements_rim_inside", {"element_size_factor": 0.75, "probe_inset": 0.3}),
 )
 
 
