@@ -72,7 +72,7 @@ def test_full_thickness_defect_stays_a_hole():
     _meets_gate_and_fidelity(cm.facts)
     assert cm.facts["defect_holes"] >= 1
     # the articular face has a boundary loop per hole besides the outer edge
-    surf = cm.grid().extract_surface()
+    surf = cm.grid().extract_surface(algorithm="dataset_surface")
     top = surf.extract_cells(np.flatnonzero(surf.point_data["articular"][surf.faces.reshape(-1, 5)[:, 1:]].all(1)))
     loops = top.extract_feature_edges(boundary_edges=True, feature_edges=False, manifold_edges=False,
                                       non_manifold_edges=False).connectivity()

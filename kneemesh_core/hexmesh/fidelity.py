@@ -23,7 +23,7 @@ def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float) -> dict:
     """
     grid = to_grid(hm.points, hm.hexes)
     volume_ml = float(grid.volume) / 1000.0
-    outer = grid.extract_surface().triangulate()
+    outer = grid.extract_surface(algorithm="dataset_surface").triangulate()
     cells = surface.compute_cell_sizes(length=False, volume=False)
     area = np.asarray(cells.cell_data["Area"])
     d = distance_to_surface(surface.cell_centers().points, outer)
