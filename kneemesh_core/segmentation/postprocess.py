@@ -46,9 +46,13 @@ def clean_classes(classes: np.ndarray, spacing_zyx: tuple[float, float, float], 
             keep = sizes == sizes.max() if largest_only else sizes >= 0.05 * sizes.max()
             view[mask & ~np.concatenate([[False], keep])[comp]] = 0
         if c in (1, 2, 3):  # bones are solid: fill their small holes (marrow lesions read as other tissue)
-            solid = view == c
+            kept = ndi.find_objects((view == c).astype(np.uint8))
+            if not kept:
+                continue
+            bone = view[kept[0]]  # the kept bone's own box: stray voxels dropped above no longer widen it
+            solid = bone == c
             holes, m = ndi.label(ndi.binary_fill_holes(solid) & ~solid)
             if m:
                 small = np.bincount(holes.ravel())[1:] * voxel_ml <= max_hole_ml
-                view[np.concatenate([[False], small])[holes]] = c
+                bone[np.concatenate([[False], small])[holes]] = c
     return out
