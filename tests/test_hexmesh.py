@@ -88,10 +88,12 @@ def test_knee_with_lesion_labels():
 
 @pytest.mark.parametrize("side", ["left", "right"])
 def test_phantom_plates_with_defects_pass_gate(phantoms, side):
-    """Severity-2 phantoms (thinning and full-thickness defects) on both sides: both plates within the gate.
+    """Severity-2 phantoms (thinning and full-thickness defects) on both sides: both plates within
+    the gate, the volume and the deviation targets.
 
-    (Phantom plates are meshed less faithfully than real ones - coverage 0.87-0.98 and volume
-    within 9%, against 0.97 and 5% on real knees - an open item; fidelity is held to a looser bound here.)"""
+    (Coverage is held to 0.95, not 0.97: the right lateral plate's defect walls leave it at 0.957
+    on every attempt - an open item; the other three plates meet every fidelity target.)"""
+    from kneemesh_core.hexmesh.fidelity import fidelity_checks
     from kneemesh_core.io import Volume
     from kneemesh_core.knee import canonicalise
 
@@ -101,7 +103,22 @@ def test_phantom_plates_with_defects_pass_gate(phantoms, side):
     for tissue in ("medial_tibial_cartilage", "lateral_tibial_cartilage"):
         f = mesh_cartilage(knee.labels, tissue).facts
         assert f["gate_passed"], (tissue, f)
-        assert f["coverage"] >= 0.85 and abs(f["volume_error"]) <= 0.1, (tissue, f)
+        checks = fidelity_checks(f)
+        assert checks["volume"] and checks["deviation_median"] and checks["deviation_p95"], (tissue, f)
+        assert f["coverage"] >= 0.95, (tissue, f)
+
+
+def test_a_plate_short_of_coverage_widens_and_never_narrows(phantoms):
+    """A phantom plate whose cartilage ends in a wall: the first attempts are within the gate but
+    stop short of the wall (coverage ~0.95); the chain then widens the footprint to the wall, and
+    never tries the fallbacks that would shrink it further."""
+    from kneemesh_core.hexmesh import FALLBACKS, NARROWING, WIDENING
+
+    _, labels = phantoms("right", 0, seed=4)
+    f = mesh_cartilage(labels, "lateral_tibial_cartilage").facts
+    _meets_gate_and_fidelity(f)
+    assert f["fallbacks"] == ["rim_to_wall"] and not NARROWING & set(f["attempts"])
+    assert WIDENING <= {name for name, _ in FALLBACKS}
 
 
 @pytest.mark.parametrize("layers", [1, 4])

@@ -40,6 +40,12 @@ def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float) -> dict:
     }
 
 
+def fidelity_checks(f: dict) -> dict[str, bool]:
+    """Each fidelity target of a :func:`fidelity` result, met or not."""
+    return {"volume": abs(f["volume_error"]) <= 0.05, "coverage": f["coverage"] >= 0.97,
+            "deviation_median": f["surface_deviation_mm"]["median"] <= 0.15,
+            "deviation_p95": f["surface_deviation_mm"]["p95"] <= 0.5}
+
+
 def passes_fidelity(f: dict) -> bool:
-    return (abs(f["volume_error"]) <= 0.05 and f["coverage"] >= 0.97 and f["surface_deviation_mm"]["median"] <= 0.15
-            and f["surface_deviation_mm"]["p95"] <= 0.5)
+    return all(fidelity_checks(f).values())

@@ -58,7 +58,7 @@ def enclosed_holes(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction: float = 0.35,
-                   max_slope_deg: float = 55.0, s_scale: np.ndarray | float = 1.0, min_area: float = 4.0,
+                   max_slope_deg: float = 55.0, fold_slope_deg: float = 80.0, s_scale: np.ndarray | float = 1.0, min_area: float = 4.0,
                    min_hole: float = 1.0, smooth_mm: float = 1.0) -> Footprint:
     """Footprint of a height field.
 
@@ -70,7 +70,9 @@ def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction
     Where the rim rolls over (either surface steeper than ``max_slope_deg``
     to the rays), the footprint is trimmed from the outside in: a column
     there would be sheared, and a quad stretched, beyond what a scaled
-    Jacobian of 0.5 allows.
+    Jacobian of 0.5 allows.  Where either surface is steeper than
+    ``fold_slope_deg`` the rays jump between two sheets (a fold seen from the
+    axis) or fall off a wall, and the footprint is cut there.
     ``s_scale`` converts an s-step into mm along the surface (cylinder: R0 / r).
     Islands smaller than
     ``min_area`` mm^2 are dropped; holes smaller than ``min_hole`` mm^2 are
@@ -98,7 +100,7 @@ def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction
         gs, gt = np.gradient(height, step)
         slope = np.hypot(gs * s_scale, gt)
         steep |= slope > np.tan(np.deg2rad(max_slope_deg))
-        jump |= slope > np.tan(np.deg2rad(80.0))
+        jump |= slope > np.tan(np.deg2rad(fold_slope_deg))
     rim = ndi.binary_propagation(~mask, mask=~mask | steep)
     # where neighbouring rays jump between two sheets of cartilage (a fold seen from the
     # axis), the footprint is cut: each sheet ends in its own edge instead of a bridge
