@@ -33,7 +33,7 @@ from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.hexmesh.blend import BlendOptions, blend
 from kneemesh_core.hexmesh.domain import CylinderDomain, PlaneDomain
 from kneemesh_core.hexmesh.extrude import HexMesh, extrude
-from kneemesh_core.hexmesh.fidelity import fidelity, fidelity_checks, passes_fidelity
+from kneemesh_core.hexmesh.fidelity import fidelity, fidelity_checks, passes_fidelity, short_of_footprint
 from kneemesh_core.hexmesh.footprint import find_footprint
 from kneemesh_core.hexmesh.quadmesh import quad_mesh
 from kneemesh_core.hexmesh.quality import boundary_crossings, hex_quality, passes_gate, summary, to_grid
@@ -92,11 +92,6 @@ NARROWING = frozenset({"trimmed_rim", "deeper_inset"})
 #: Fallbacks that widen the footprint: tried only then, when an attempt is within the gate and
 #: short of coverage or volume (they rarely help an attempt that is outside the gate).
 WIDENING = frozenset({"rim_to_wall"})
-
-
-def _short_of_footprint(f: dict) -> bool:
-    """Whether a mesh misses fidelity by covering too little: coverage or volume too low."""
-    return f["coverage"] < 0.97 or f["volume_error"] < -0.05
 
 
 @dataclasses.dataclass
@@ -198,7 +193,7 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
     best = None
     cache: dict = {}
     for name, change in (("default", {}),) + (FALLBACKS if fallbacks else ()):
-        short = best is not None and best[0][0] and _short_of_footprint(best[4])
+        short = best is not None and best[0][0] and short_of_footprint(best[4])
         if (name in NARROWING and short) or (name in WIDENING and not short):
             continue
         change = dict(change)

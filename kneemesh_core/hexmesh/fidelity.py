@@ -6,11 +6,14 @@ import numpy as np
 import pyvista as pv
 
 from kneemesh_core.hexmesh.extrude import HexMesh
-from kneemesh_core.hexmesh.quality import to_grid
+from kneemesh_core.hexmesh.quality import boundary_surface, to_grid
 from kneemesh_core.surfaces.metrics import distance_to_surface
 
 #: A reconstructed surface patch counts as covered within this distance of the mesh, mm.
 COVERAGE_TOL_MM = 0.5
+#: The fidelity targets: volume within this fraction of the label's, at least this much coverage.
+VOLUME_TOL = 0.05
+MIN_COVERAGE = 0.97
 
 
 def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float) -> dict:
@@ -23,7 +26,7 @@ def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float) -> dict:
     """
     grid = to_grid(hm.points, hm.hexes)
     volume_ml = float(grid.volume) / 1000.0
-    outer = grid.extract_surface(algorithm="dataset_surface").triangulate()
+    outer = boundary_surface(grid)
     cells = surface.compute_cell_sizes(length=False, volume=False)
     area = np.asarray(cells.cell_data["Area"])
     d = distance_to_surface(surface.cell_centers().points, outer)
@@ -42,10 +45,15 @@ def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float) -> dict:
 
 def fidelity_checks(f: dict) -> dict[str, bool]:
     """Each fidelity target of a :func:`fidelity` result, met or not."""
-    return {"volume": abs(f["volume_error"]) <= 0.05, "coverage": f["coverage"] >= 0.97,
+    return {"volume": abs(f["volume_error"]) <= VOLUME_TOL, "coverage": f["coverage"] >= MIN_COVERAGE,
             "deviation_median": f["surface_deviation_mm"]["median"] <= 0.15,
             "deviation_p95": f["surface_deviation_mm"]["p95"] <= 0.5}
 
 
 def passes_fidelity(f: dict) -> bool:
     return all(fidelity_checks(f).values())
+
+
+def short_of_footprint(f: dict) -> bool:
+    """Whether a mesh misses fidelity by covering too little: coverage or volume too low."""
+    return f["coverage"] < MIN_COVERAGE or f["volume_error"] < -VOLUME_TOL

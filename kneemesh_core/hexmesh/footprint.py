@@ -58,8 +58,8 @@ def enclosed_holes(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction: float = 0.35,
-                   max_slope_deg: float = 55.0, fold_slope_deg: float = 80.0, s_scale: np.ndarray | float = 1.0, min_area: float = 4.0,
-                   min_hole: float = 1.0, smooth_mm: float = 1.0) -> Footprint:
+                   max_slope_deg: float = 55.0, fold_slope_deg: float = 80.0, s_scale: np.ndarray | float = 1.0,
+                   min_area: float = 4.0, min_hole: float = 1.0, smooth_mm: float = 1.0) -> Footprint:
     """Footprint of a height field.
 
     Rays longer than three median thicknesses graze the cartilage sheet and

@@ -61,7 +61,12 @@ def boundary_crossings(points: np.ndarray, hexes: np.ndarray) -> int:
     """Edges of the mesh's triangulated boundary that pass through another boundary face: a mesh
     whose elements are all fine can still fold over itself (two stretches of the cartilage edge
     projected onto overlapping bone), which no element metric sees."""
-    return crossing_edges(to_grid(points, hexes).extract_surface(algorithm="dataset_surface").triangulate())
+    return crossing_edges(boundary_surface(to_grid(points, hexes)))
+
+
+def boundary_surface(grid: pv.UnstructuredGrid) -> pv.PolyData:
+    """The triangulated outer boundary of a hex grid."""
+    return grid.extract_surface(algorithm="dataset_surface").triangulate()
 
 
 def passes_gate(s: dict) -> bool:
