@@ -73,6 +73,11 @@ FALLBACKS: tuple[tuple[str, dict], ...] = (
     # the rim out to where the cartilage ends, steep or walled, with its heights read half an
     # element inside: the phantom plates' walls and OA rims (tried only when short of coverage)
     ("rim_to_wall", {"probe_inset": 0.5, "max_slope_deg": 89.0, "fold_slope_deg": 90.0}),
+    # further out still, down to a tenth of the median thickness, with the lattice closer to the
+    # contour: the thin lateral facet of a patella (OAI 9086407_96m, 9135902_00m PC: 0.967-0.970
+    # coverage -> 0.974-0.976)
+    ("thin_rim_to_wall", {"probe_inset": 0.5, "max_slope_deg": 89.0, "fold_slope_deg": 90.0,
+                          "edge_fraction": 0.1, "inset": 0.3}),
     ("trimmed_rim", {"edge_fraction": 0.35, "max_slope_deg": 55.0}),  # less coverage, squarer rim elements
     ("smoother_surface", {"pass_band": 0.01}),
     ("finer_rays", {"ray_step_fraction": 0.125}),
@@ -91,7 +96,7 @@ FALLBACKS: tuple[tuple[str, dict], ...] = (
 NARROWING = frozenset({"trimmed_rim", "deeper_inset"})
 #: Fallbacks that widen the footprint: tried only then, when an attempt is within the gate and
 #: short of coverage or volume (they rarely help an attempt that is outside the gate).
-WIDENING = frozenset({"rim_to_wall"})
+WIDENING = frozenset({"rim_to_wall", "thin_rim_to_wall"})
 
 
 @dataclasses.dataclass
@@ -118,8 +123,18 @@ class CartilageMesh:
         return g
 
 
-def _domain(tissue: str, points: np.ndarray, labels: sitk.Image):
-    """The projection domain of a cartilage from its surface points (N, 3).
+def _bone_centre(labels: sitk.Image, tissue: str) -> np.ndarray:
+    """The centroid (3,) in LPS mm of the bone under a cartilage (every 97th voxel)."""
+    bone = sitk.GetArrayViewFromImage(labels) == LABEL[BONE_OF[tissue]]
+    if not bone.any():
+        raise KneeMeshError("bone_missing", f"{tissue}: its bone ({BONE_OF[tissue]}) is not labelled; "
+                            "the projection needs it to tell the bone side from the joint side.")
+    return voxel_to_lps(labels, np.argwhere(bone)[::97, ::-1]).mean(0)
+
+
+def _domain(tissue: str, points: np.ndarray, bone_centre: np.ndarray):
+    """The projection domain of a cartilage from its surface points (N, 3) and the centroid (3,)
+    of its bone.
 
     Femoral: a cylinder about the condylar (medial-lateral) axis.  Patellar: a
     cylinder about the patella's superior-inferior axis: its articular surface
@@ -129,11 +144,6 @@ def _domain(tissue: str, points: np.ndarray, labels: sitk.Image):
     be plausible (axis within 20 deg of the anatomical hint, radius at least
     18 mm: real knees give 23-51 mm), or the plane is used.
     """
-    bone = sitk.GetArrayViewFromImage(labels) == LABEL[BONE_OF[tissue]]
-    if not bone.any():
-        raise KneeMeshError("bone_missing", f"{tissue}: its bone ({BONE_OF[tissue]}) is not labelled; "
-                            "the projection needs it to tell the bone side from the joint side.")
-    bone_centre = voxel_to_lps(labels, np.argwhere(bone)[::97, ::-1]).mean(0)
     axis_hint = {"femoral_cartilage": [1.0, 0.0, 0.0], "patellar_cartilage": [0.0, 0.0, 1.0]}.get(tissue)
     if axis_hint is not None:
         cyl = CylinderDomain.fit(points, ml_hint=np.array(axis_hint))
@@ -146,16 +156,30 @@ def _domain(tissue: str, points: np.ndarray, labels: sitk.Image):
 
 
 def _rays(labels: sitk.Image, tissue: str, opts: HexOptions, h: float, cache: dict):
-    """The cleaned mask, reconstructed surface, domain and height field of an attempt; shared by
-    the attempts whose options for them agree (most fallbacks change only later steps)."""
-    key = (opts.closing_voxels, opts.min_component_ml, opts.pass_band, h * opts.ray_step_fraction)
-    if key not in cache:
-        cm = clean_mask(labels, LABEL[tissue], opts.closing_voxels, tissue, min_component_ml=opts.min_component_ml)
-        surface = mask_surface(cm, decimation=0.5, pass_band=opts.pass_band)
-        pts = np.asarray(surface.points)
-        domain = _domain(tissue, pts, labels)
-        cache[key] = cm, surface, domain, height_field(surface, domain, domain.to_2d(pts), step=key[-1])
-    return cache[key]
+    """The cleaned mask, reconstructed surface, domain and height field of an attempt.
+
+    Each step is computed once per cartilage for the options it depends on and shared by the
+    attempts that agree on them (most fallbacks change only later steps): the mask on the closing
+    and the smallest component, the surface also on the smoothing, the domain on the surface and
+    the bone, the rays also on their spacing.
+    """
+    mask_key = (opts.closing_voxels, opts.min_component_ml)
+    surface_key = mask_key + (opts.pass_band,)
+    ray_key = surface_key + (h * opts.ray_step_fraction,)
+    if ray_key not in cache:
+        if mask_key not in cache:
+            cache[mask_key] = clean_mask(labels, LABEL[tissue], opts.closing_voxels, tissue,
+                                         min_component_ml=opts.min_component_ml)
+        if surface_key not in cache:
+            surface = mask_surface(cache[mask_key], decimation=0.5, pass_band=opts.pass_band)
+            pts = np.asarray(surface.points)
+            if "bone_centre" not in cache:
+                cache["bone_centre"] = _bone_centre(labels, tissue)
+            cache[surface_key] = surface, _domain(tissue, pts, cache["bone_centre"]), pts
+        surface, domain, pts = cache[surface_key]
+        cache[ray_key] = (cache[mask_key], surface, domain,
+                          height_field(surface, domain, domain.to_2d(pts), step=ray_key[-1]))
+    return cache[ray_key]
 
 
 def _attempt(labels: sitk.Image, tissue: str, opts: HexOptions, h: float, cache: dict):
