@@ -4,7 +4,9 @@ A label map of any supported convention (``kneemesh_core.tissues``) is read
 and canonicalised as for meshing, reoriented like the network's slices
 (:data:`.preprocess.NET_ORIENTATION`) and mapped to the network's classes.
 Training slices come from :func:`sample`: a random slice of a random subject
-(mostly slices with cartilage), a random crop (mostly around cartilage),
+(mostly slices with cartilage), a random crop (mostly around cartilage, the rest
+anywhere, so the bone shafts far from the joint and cut by the field of view
+are seen too),
 the paper's geometric augmentation, then synthetic DESS contrast (:mod:`.synth`).
 """
 
@@ -78,11 +80,15 @@ def split_by_subject(paths: list[str], fractions: tuple[float, float] = (0.15, 0
     return pick(set(subjects) - val - test), pick(val), pick(test)
 
 
+NEAR_CARTILAGE = 0.6  # the share of crops centred near cartilage; 0.8 left the tibial shaft under-seen
+
+
 def _crop(labels: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
-    """A size x size crop of a slice (H, W), centred near a cartilage pixel 80 % of the time (zero-padded)."""
+    """A size x size crop of a slice (H, W), centred near a cartilage pixel with probability
+    :data:`NEAR_CARTILAGE`, else anywhere (zero-padded)."""
     h, w = labels.shape
     cart = np.argwhere(np.isin(labels, CARTILAGES))
-    if len(cart) and rng.random() < 0.8:
+    if len(cart) and rng.random() < NEAR_CARTILAGE:
         cy, cx = cart[rng.integers(len(cart))] + rng.integers(-size // 4, size // 4 + 1, 2)
     else:
         cy, cx = rng.integers(0, h), rng.integers(0, w)

@@ -5,11 +5,14 @@ anatomy (manual OAI label maps, pymskt maps, phantoms) dressed in randomised
 contrast, in the spirit of SynthSeg (Billot et al. 2023): every slice draws its
 own tissue intensities around water-excitation DESS contrast (fluid brightest,
 cartilage bright, muscle intermediate, marrow and fat dark, cortex darkest),
-the background is cut into random extra tissue classes, a film of synovial
-fluid may line the cartilage, and then partial-volume blur, a bias field,
-a coarser acquisition along one axis and Rician noise are applied.  The
-geometry is augmented before the contrast is drawn, as in the paper: rotation
-up to 30 deg half the time, elastic and grid distortion and brightness/contrast
+the background is cut into random extra tissue classes (one of them often as
+dark as marrow, so a bone must be told by its cortex and shape, not by its
+contrast), air often surrounds the leg beyond a wavy skin line lined with dark
+fat, marrow is grainy (trabecular) or flat, a film of synovial fluid may line
+the cartilage, and then partial-volume blur, a bias field, a coarser
+acquisition along one axis and Rician noise are applied.  The geometry is
+augmented before the contrast is drawn, as in the paper: rotation up to 30 deg
+half the time, elastic and grid distortion and brightness/contrast
 changes up to 30 % of the time.
 
 All functions work on one 2-D slice (H, W) in the network's classes
@@ -40,6 +43,17 @@ def _smooth_noise(shape, sigma: float, rng: np.random.Generator) -> np.ndarray:
         n = ndi.zoom(n, f, order=1)
     n = n[f:f + shape[0], f:f + shape[1]]
     return n / max(float(n.std()), 1e-6)
+
+
+def _depth_below_skin(labels: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Depth (H, W) float32 in pixels below a wavy skin line drawn 25-110 px (about 9-40 mm at
+    DESS resolution) out from the joint's tissues: negative outside the leg; a crop holding no
+    tissue lies inside or outside the leg as a whole."""
+    fg = labels > 0
+    if not fg.any():
+        return np.full(labels.shape, 1e3 if rng.random() < 0.5 else -1e3, np.float32)
+    margin = rng.uniform(25, 110) + rng.uniform(0, 15) * _smooth_noise(labels.shape, 20.0, rng)
+    return (margin - ndi.distance_transform_edt(~fg)).astype(np.float32)
 
 
 def augment_geometry(labels: np.ndarray, rng: np.random.Generator, p_rotate: float = 0.5,
@@ -85,15 +99,20 @@ def synthesize(labels: np.ndarray, rng: np.random.Generator, p_intensity: float 
     fields = np.stack([_smooth_noise(shape, rng.uniform(6, 25), rng) for _ in range(k)])
     cls = fields.argmax(0)
     levels = rng.uniform(*RANGES["background"], k).astype(np.float32)
+    marrow = rng.uniform(*RANGES["marrow"])
+    if rng.random() < 0.35:  # a background tissue as dark as marrow (fat, tendon): no bone contrast
+        levels[rng.integers(k)] = marrow * rng.uniform(0.8, 1.2)
     img[:] = levels[cls]
-    if rng.random() < 0.2:  # air around the leg
-        img[_smooth_noise(shape, 30.0, rng) > rng.uniform(0.8, 1.5)] = 0.0
+    if rng.random() < 0.5:  # air outside the leg, often under a band of dark subcutaneous fat
+        depth = _depth_below_skin(labels, rng)
+        if rng.random() < 0.6:
+            img[(depth >= 0) & (depth < rng.uniform(6, 25))] = rng.uniform(0.0, 0.15)
+        img[depth < 0] = 0.0
     cart = np.isin(labels, CARTILAGES)
     if rng.random() < 0.8:  # synovial fluid lining the cartilage
         film = ndi.binary_dilation(cart, iterations=int(rng.integers(1, 4))) & (labels == 0)
         film &= _smooth_noise(shape, 4.0, rng) > rng.uniform(-1.0, 0.5)
         img[film] = rng.uniform(*RANGES["fluid"])
-    marrow = rng.uniform(*RANGES["marrow"])
     cortex = rng.uniform(*RANGES["cortex"])
     base = rng.uniform(*RANGES["cartilage"])
     for c in BONES:
@@ -101,6 +120,8 @@ def synthesize(labels: np.ndarray, rng: np.random.Generator, p_intensity: float 
         if not m.any():
             continue
         img[m] = marrow * rng.uniform(0.8, 1.2)
+        if rng.random() < 0.5:  # trabecular texture half the time: marrow may be flat or grainy
+            img[m] *= np.clip(1.0 + rng.uniform(0.1, 0.5) * _smooth_noise(shape, rng.uniform(0.6, 2.0), rng)[m], 0.0, None)
         rim = m & ~ndi.binary_erosion(m, iterations=int(rng.integers(1, 4)))
         img[rim] = cortex
     for c in CARTILAGES:
