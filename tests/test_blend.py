@@ -9,6 +9,7 @@ import pyvista as pv
 from conftest import OAI, PYMSKT_RIGHT, real
 from kneemesh_core.hexmesh import BlendOptions, HexOptions, blend_cartilage, mesh_cartilage
 from kneemesh_core.hexmesh.conform import conform_bone
+from kneemesh_core.hexmesh.quality import boundary_crossings
 from kneemesh_core.knee import load_knee
 from kneemesh_core.pipeline import JobOptions
 from kneemesh_core.surfaces.metrics import crossing_edges, signed_distance
@@ -40,8 +41,7 @@ def test_blend_meets_quality_targets(blended):
     assert sj.min() >= 0.2 and (sj >= 0.5).mean() >= 0.99
     assert sj[cm.mesh.ring >= 2].min() >= 0.5  # beyond the two outer rings nothing drops below 0.5
     assert b["inverted"] == 0 and b["collapsed"] == 0
-    outer = pv.UnstructuredGrid({pv.CellType.HEXAHEDRON: cm.mesh.hexes}, cm.mesh.points).extract_surface(algorithm="dataset_surface").triangulate()
-    assert crossing_edges(outer) == 0
+    assert boundary_crossings(cm.mesh.points, cm.mesh.hexes) == 0
     assert signed_distance(cm.mesh.points, bone).min() >= -0.05  # nothing inside the bone
     if "defect" in name:
         assert cm.facts["defect_holes"] >= 1  # the holes are blended too and stay holes
