@@ -2,25 +2,64 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
+from inspect import Parameter, signature
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
+from kneemesh.console import console, step_progress
 from kneemesh_core import KneeMeshError, __version__
+from kneemesh_core.job import JobRequest
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Knee MRI or label maps to FE-ready knee models.")
-out = Console()
-err = Console(stderr=True)
+out = console()
+err = console(stderr=True)
 
-PresetOpt = typer.Option(None, "--preset", help="Label convention: kneemesh, pymskt, oai-zib, imorphics (default: detect).")
+
+def job_option(field: str, *flags: str):
+    """A command-line flag for one option of :class:`JobRequest`, with its help and default from
+    there (the flag's own default is None: not given, so the request's default applies)."""
+    f = JobRequest.model_fields[field]
+    default = "" if f.default is None else f" (default: {f.default})"
+    return typer.Option(None, *flags, help=f"{f.description}{default}", show_default=False)
+
+
+PresetOpt = job_option("preset", "--preset")
 LabelsOpt = typer.Option(None, "--labels", help="Custom mapping 'femur=5,tibia=6,...' or a JSON file.")
-SideOpt = typer.Option(None, "--side", help="left or right (default: detect and report how).")
+SideOpt = job_option("side", "--side")
+WorkersOpt = typer.Option(2, "--workers", min=1, help="Processes meshing tissues in parallel.")
+#: The meshing flags `mesh` and `run` share: name -> (type, flag).
+MESH_FLAGS = {
+    "only": (Optional[str], job_option("only", "--only")),
+    "stl": (Optional[bool], job_option("stl", "--stl/--no-stl")),
+    "bone_edge": (Optional[float], job_option("bone_edge", "--bone-edge")),
+    "element_size": (Optional[float], job_option("element_size", "--element-size")),
+    "layers": (Optional[int], job_option("layers", "--layers")),
+    "blend": (Optional[bool], job_option("blend", "--blend/--no-blend")),
+    "blend_angle": (Optional[float], job_option("blend_angle", "--blend-angle")),
+}
+
+
+def with_mesh_flags(command):
+    """Give a command the shared :data:`MESH_FLAGS` (after its own parameters); they reach it as
+    one dict, ``mesh_flags``."""
+    sig = signature(command, eval_str=True)
+    own = [p for p in sig.parameters.values() if p.name != "mesh_flags"]
+    shared = [Parameter(name, Parameter.KEYWORD_ONLY, default=flag, annotation=kind)
+              for name, (kind, flag) in MESH_FLAGS.items()]
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        return command(*args, mesh_flags={name: kwargs.pop(name) for name in MESH_FLAGS}, **kwargs)
+
+    wrapper.__signature__ = sig.replace(parameters=own + shared)
+    return wrapper
 
 
 @contextmanager
@@ -91,51 +130,28 @@ def phantom(
 
 
 @app.command()
+@with_mesh_flags
 def mesh(
     labels_file: Path = typer.Argument(..., metavar="LABELS", help="Label map (NIfTI, NRRD, MHA, DICOM)."),
     out_dir: Path = typer.Option(..., "--out", help="Output folder: meshes/, surfaces/, report.json."),
     preset: Optional[str] = PresetOpt,
     labels: Optional[str] = LabelsOpt,
     side: Optional[str] = SideOpt,
-    only: str = typer.Option("all", "--only", help="all, bones or cartilage."),
-    stl: bool = typer.Option(False, "--stl", help="Also write .stl files."),
-    bone_edge: float = typer.Option(3.0, "--bone-edge", help="Target bone triangle edge, mm."),
-    element_size: float = typer.Option(1.0, "--element-size", help="Cartilage in-plane element edge, mm."),
-    layers: int = typer.Option(4, "--layers", min=1, help="Cartilage element layers through the thickness."),
-    workers: int = typer.Option(2, "--workers", min=1, help="Processes meshing tissues in parallel."),
-    no_blend: bool = typer.Option(False, "--no-blend", help="Keep the step at the cartilage edge (no blending or fusion)."),
-    blend_angle: float = typer.Option(45.0, "--blend-angle", min=20.0, max=80.0, help="Angle (deg) at which the blended cartilage edge meets the bone."),
+    workers: int = WorkersOpt,
+    mesh_flags: dict = None,
 ):
     """Mesh a knee: closed bone shells (meshes/*.vtp), all-hex cartilage (meshes/*.vtu), report.json."""
-    from kneemesh_core.hexmesh import BlendOptions, HexOptions
-    from kneemesh_core.pipeline import JobOptions
-    from kneemesh_core.surfaces.tissue import SurfaceOptions
-
-    opts = JobOptions(preset=preset, labels=labels, side=side, only=only, stl=stl,
-                      surface=SurfaceOptions(bone_edge_mm=bone_edge),
-                      hex=HexOptions(element_size=element_size, layers=layers),
-                      blend=None if no_blend else BlendOptions(angle_deg=blend_angle))
-    _run_job(labels_file, out_dir, opts, workers)
+    with _clear_errors():
+        request = JobRequest.build(preset=preset, labels=labels, side=side, **mesh_flags)
+    _run_job(labels_file, out_dir, request, workers)
 
 
-def _run_job(input_path: Path, out_dir: Path, opts, workers: int) -> None:
+def _run_job(input_path: Path, out_dir: Path, request: JobRequest, workers: int) -> None:
     """Run the pipeline in-process with a progress line per step, then print the report table."""
-    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+    from kneemesh_core.job import run
 
-    from kneemesh_core.pipeline import run
-
-    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=err,
-                  transient=not err.is_terminal) as bar:
-        tasks: dict[str, int] = {}
-
-        def progress(stage: str, state: str) -> None:
-            if stage not in tasks:
-                tasks[stage] = bar.add_task(f"{stage}: {state}", total=1)
-            bar.update(tasks[stage], description=f"{stage}: {state}",
-                       completed=1 if state in ("done", "ok", "failed") else 0)
-
-        with _clear_errors():
-            report = run(input_path, out_dir, opts, workers=workers, progress=progress)
+    with _clear_errors(), step_progress(err) as progress:
+        report = run(input_path, out_dir, request.job_options(), workers=workers, progress=progress)
     t = Table(title=f"{out_dir} ({report['input']['side']} knee, {report['input']['preset']} labels)")
     for col in ("tissue", "status", "s", "elements", "volume ml", "label ml", "quality", "fidelity"):
         t.add_column(col)
@@ -162,23 +178,19 @@ def _run_job(input_path: Path, out_dir: Path, opts, workers: int) -> None:
 
 
 @app.command("run")
+@with_mesh_flags
 def run_image(
     image_file: Path = typer.Argument(..., metavar="IMAGE", help="Sagittal knee MRI (NIfTI, NRRD, MHA, DICOM folder or zip)."),
     out_dir: Path = typer.Option(..., "--out", help="Output folder: labels.nrrd, meshes/, surfaces/, report.json."),
-    model: Optional[Path] = typer.Option(None, "--model", help="ONNX segmentation model (default: the shipped one)."),
+    model: Optional[Path] = job_option("model", "--model"),
     side: Optional[str] = SideOpt,
-    element_size: float = typer.Option(1.0, "--element-size", help="Cartilage in-plane element edge, mm."),
-    layers: int = typer.Option(4, "--layers", min=1, help="Cartilage element layers through the thickness."),
-    workers: int = typer.Option(2, "--workers", min=1, help="Processes meshing tissues in parallel."),
-    no_blend: bool = typer.Option(False, "--no-blend", help="Keep the step at the cartilage edge."),
+    workers: int = WorkersOpt,
+    mesh_flags: dict = None,
 ):
     """Segment a knee MRI, then mesh it: the whole job from an image, in this process."""
-    from kneemesh_core.hexmesh import BlendOptions, HexOptions
-    from kneemesh_core.pipeline import JobOptions
-
-    opts = JobOptions(input_type="image", model=str(model) if model else None, side=side,
-                      hex=HexOptions(element_size=element_size, layers=layers), blend=None if no_blend else BlendOptions())
-    _run_job(image_file, out_dir, opts, workers)
+    with _clear_errors():
+        request = JobRequest.build(input_type="image", model=str(model) if model else None, side=side, **mesh_flags)
+    _run_job(image_file, out_dir, request, workers)
 
 
 @app.command()

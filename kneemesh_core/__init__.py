@@ -1,10 +1,13 @@
 """KneeMesh science library: knee label maps and MRI in, FE-ready knee models out.
 
 The sub-packages follow the pipeline: ``io`` (volumes in physical LPS space),
-``tissues`` (the knee's tissues and label conventions), ``side`` (left/right and
-medial/lateral), ``phantom`` (synthetic knees), ``surfaces`` (triangle surfaces
-and bone meshes), ``pipeline`` (the one definition of the job that the CLI and
-the workers share).  No web or queue code lives here.
+``tissues`` and ``knee`` (the knee's tissues, label conventions and canonical
+labels), ``side`` (left/right and medial/lateral), ``segmentation`` (the ONNX
+network for DESS images), ``surfaces`` (triangle surfaces and bone meshes),
+``hexmesh`` (all-hexahedral cartilage, blended into the bone), ``phantom``
+(synthetic knees), ``geometry`` (small vector helpers), and ``job`` (the one
+definition of the job that the CLI and the workers share).  No web or queue code
+lives here.
 """
 
 from kneemesh_core.errors import KneeMeshError

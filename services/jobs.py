@@ -16,16 +16,13 @@ import time
 import uuid
 from pathlib import Path
 
-from kneemesh_core.pipeline import INGEST, JobOptions, plan, read_step
+from kneemesh_core.io.files import atomic_write_json
+from kneemesh_core.job import INGEST, JobOptions, plan, read_step, utc_now
 from kneemesh_core.tissues import BONES, CARTILAGES
-from services.store import FileStore, atomic_write_json
+from services.store import FileStore
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINISHED = ("succeeded", "failed", "cancelled")
-
-
-def now() -> str:
-    return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")
 
 
 _last_ns = 0
@@ -65,7 +62,7 @@ class Jobs:
     # records
     def create(self, owner: str, input_name: str, input_type: str, options: JobOptions,
                batch_id: str | None = None) -> JobRecord:
-        rec = JobRecord(uuid.uuid4().hex, owner, now(), input_name, input_type, options.to_dict(), batch_id,
+        rec = JobRecord(uuid.uuid4().hex, owner, utc_now(), input_name, input_type, options.to_dict(), batch_id,
                         created_ns=_next_ns())
         self.store.create(rec.id)
         self.save(rec)
@@ -135,7 +132,7 @@ class Jobs:
     # batches
     def save_batch(self, batch_id: str, owner: str, job_ids: list[str]) -> None:
         atomic_write_json(self.store.root / "batches" / f"{batch_id}.json",
-                          {"id": batch_id, "owner": owner, "created_at": now(), "jobs": job_ids})
+                          {"id": batch_id, "owner": owner, "created_at": utc_now(), "jobs": job_ids})
 
     def get_batch(self, batch_id: str) -> dict | None:
         if not batch_id.isalnum():

@@ -15,11 +15,10 @@ import json
 import os
 import re
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Iterator, Protocol
 
-from kneemesh_core.pipeline import MANIFEST_FILE
+from kneemesh_core.job import MANIFEST_FILE
 
 JOB_ID = re.compile(r"^[0-9a-f]{32}$")
 
@@ -33,13 +32,6 @@ class ArtifactStore(Protocol):
 
     def delete(self, job_id: str) -> None:
         """Remove the job's upload and outputs (its record stays)."""
-
-
-def atomic_write_json(path: Path, data) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
-    with os.fdopen(fd, "w") as fh:
-        json.dump(data, fh, indent=1)
-    os.replace(tmp, path)
 
 
 class FileStore:

@@ -11,9 +11,9 @@ from kneemesh_core.hexmesh import BlendOptions, HexOptions, blend_cartilage, mes
 from kneemesh_core.hexmesh.conform import conform_bone
 from kneemesh_core.hexmesh.quality import boundary_crossings
 from kneemesh_core.knee import load_knee
-from kneemesh_core.pipeline import JobOptions
+from kneemesh_core.job import JobOptions
 from kneemesh_core.surfaces.metrics import crossing_edges, signed_distance
-from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct
+from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct_bone
 from kneemesh_core.tissues import BONE_OF
 
 CASES = {
@@ -29,7 +29,7 @@ def blended(request):
     knee = load_knee(real(path))
     cm = mesh_cartilage(knee.labels, tissue, HexOptions())
     assert cm.facts["gate_passed"]
-    bone = reconstruct(knee.labels, BONE_OF[tissue], SurfaceOptions())[0]
+    bone = reconstruct_bone(knee.labels, BONE_OF[tissue], SurfaceOptions())[0]
     return request.param, cm, blend_cartilage(cm, bone), bone
 
 
@@ -85,7 +85,7 @@ def test_bone_gives_way_where_a_fused_cartilage_stays_inside_it():
     stays inside it after fusion (moving it out would crush its elements). The tibia gives way
     there, keeping its triangles, closed and uncrossed; a cartilage not inside changes nothing."""
     knee = load_knee(real(OAI / "OAI_AKOA_9332151_96m.nii.gz"))
-    tibia = reconstruct(knee.labels, "tibia", SurfaceOptions())[0]
+    tibia = reconstruct_bone(knee.labels, "tibia", SurfaceOptions())[0]
     tissue = "medial_tibial_cartilage"
     cm = blend_cartilage(mesh_cartilage(knee.labels, tissue, HexOptions()), tibia)
     assert cm.facts["blend"]["bone_penetration_mm"] > 0.5  # the case this is for

@@ -77,3 +77,30 @@ def test_segment_and_evaluate_commands(tmp_path):
     assert json.loads(r.stdout)["seg.nii.gz"]["femoral_cartilage"]["dice"] > 0.8
     r = run("segment", image, "--out", tmp_path / "x.nii.gz", "--model", tmp_path / "none.onnx")
     assert r.returncode == 2 and "model_missing" in r.stderr and not (tmp_path / "x.nii.gz").exists()
+
+
+def test_every_job_option_is_a_flag_and_a_form_field():
+    """One builder of job options: the command line's mesh and run flags and the API's form fields
+    are the fields of JobRequest, with its defaults and bounds."""
+    import typer.main
+
+    from kneemesh.cli import app
+    from kneemesh_core.job import JobRequest
+    from services.api.openapi import openapi_yaml
+    import yaml
+
+    fields = set(JobRequest.model_fields)
+    commands = {c.name or c.callback.__name__: c for c in app.registered_commands}
+    flags = set()
+    for name in ("mesh", "run"):
+        params = typer.main.get_command_from_info(commands[name], pretty_exceptions_short=True,
+                                                  rich_markup_mode=None).params
+        flags |= {p.name for p in params}
+    # input_type is the command (mesh: labels, run: image); the rest are flags of one of the two
+    assert fields - {"input_type"} <= flags, fields - flags
+    doc = yaml.safe_load(openapi_yaml())
+    form = doc["components"]["schemas"]["JobRequest"]["properties"]
+    assert set(form) == fields
+    assert form["element_size"]["minimum"] == 0.2 and form["element_size"]["maximum"] == 5.0
+    r = run("mesh", SAMPLE, "--out", "unused", "--element-size", "0.1")
+    assert r.returncode == 2 and "element_size" in r.stderr and "0.2" in r.stderr

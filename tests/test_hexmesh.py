@@ -15,7 +15,7 @@ from kneemesh_core.hexmesh.optimize import layer_quality
 from kneemesh_core.hexmesh.quality import hex_quality, passes_gate, to_grid
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.knee import load_knee
-from kneemesh_core.pipeline import JobOptions, run
+from kneemesh_core.job import JobOptions, run
 from kneemesh_core.tissues import LABEL
 
 

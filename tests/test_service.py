@@ -167,6 +167,9 @@ def test_keys_and_unknown_jobs(stack):
     r = c.get("/v1/jobs/0123456789abcdef0123456789abcdef", headers=A)
     assert r.status_code == 404 and r.json()["message"]
     assert c.get("/v1/jobs/../../etc/passwd", headers=A).status_code == 404
+    for path in ("/v1/nothing-here", "/v2/jobs"):  # unmatched routes answer in the service's error shape too
+        r = c.get(path, headers=A)
+        assert r.status_code == 404 and r.json()["code"] == "not_found" and path in r.json()["message"]
     assert poll(c, mine, headers=A)["state"] == "succeeded"
 
 
@@ -202,6 +205,12 @@ def test_bad_uploads_are_refused_clearly_and_queue_nothing(stack, tmp_path):
     assert r.status_code == 422 and r.json()["code"] == "not_3d"
     r = upload(c, SAMPLE, layers="0")
     assert r.status_code == 422 and r.json()["code"] == "invalid_request" and "layers" in r.json()["message"]
+    r = upload(c, SAMPLE, element_size="nan")
+    assert r.status_code == 422 and "element_size" in r.json()["message"] and "finite" in r.json()["message"]
+    r = upload(c, SAMPLE, labels="/etc/passwd")  # a mapping, never a file on the server
+    assert r.status_code == 422 and r.json()["code"] == "bad_labels_spec"
+    r = upload(c, SAMPLE, input_type="image", model="../../elsewhere.onnx")  # a shipped model's name, never a path
+    assert r.status_code == 422 and r.json()["code"] == "model_missing"
     # too large: a server with a small limit refuses before storing anything
     small = Settings(data_dir=stack.data, broker_url=stack.redis.url, api_keys=KEYS, max_upload_bytes=50_000)
     with TestClient(create_app(small)) as tiny:
@@ -273,6 +282,38 @@ def test_embedded_server_end_to_end(tmp_path):
             assert status["state"] == "succeeded" and sorted(status["tissues_ok"]) == sorted(TISSUES)
             bundle = zipfile.ZipFile(io.BytesIO(c.get(job["urls"]["bundle"]).content))
             assert "meshes/femoral_cartilage.vtu" in bundle.namelist()
+
+            # killed mid-job with SIGKILL, the server takes its pool processes with it: no orphan meshes on
+            children = _children(server.pid)
+            assert len(children) >= 2, children  # the two pool processes (and a resource tracker) stay warm
+            second = upload(c, SAMPLE, headers={}).json()
+            wait_for(lambda: any(s["state"] == "running" and s["kind"] in ("bone", "cartilage")
+                                 for s in c.get(f"/v1/jobs/{second['id']}").json()["steps"]), 120, "a tissue step to run")
+            server.kill()
+            server.wait(30)
+            wait_for(lambda: not any(_alive(p) for p in children), 15, f"the pool processes {children} to end")
     finally:
-        server.terminate()
-        server.wait(30)
+        if server.poll() is None:
+            server.terminate()
+            server.wait(30)
+
+
+def _children(pid: int) -> list[int]:
+    """The process ids whose parent is ``pid`` (from /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie waiting for a reaper counts as ended)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False

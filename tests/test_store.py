@@ -8,7 +8,7 @@ import os
 
 import pytest
 
-from kneemesh_core.pipeline import BUNDLE, CONFORM, INGEST, REPORT, JobOptions, bundle, plan
+from kneemesh_core.job import BUNDLE, CONFORM, INGEST, REPORT, JobOptions, bundle, plan
 from services.jobs import Jobs
 from services.store import FileStore
 

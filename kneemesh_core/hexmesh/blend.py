@@ -41,13 +41,12 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from kneemesh_core.geometry import interpolate_layers, quad_node_normals, unit
 from kneemesh_core.hexmesh.extrude import HexMesh
 from kneemesh_core.hexmesh.optimize import independent, layer_quality
 from kneemesh_core.hexmesh.quadmesh import quad_edges
+from kneemesh_core.hexmesh.targets import BLEND_MIN_SCALED_JACOBIAN, FUSED_TOL_MM, MIN_SCALED_JACOBIAN
 from kneemesh_core.surfaces.metrics import signed_distance
-
-#: Bone-side nodes this close to the bone count as fused, mm.
-FUSED_TOL_MM = 0.05
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,7 +55,7 @@ class BlendOptions:
     bone_share: float = 0.8
     rings: int = 3
     edge_height: float = 0.3
-    edge_floor: float = 0.5
+    edge_floor: float = MIN_SCALED_JACOBIAN  # the outermost ring's floor while blending
     fuse_max_mm: float = 1.5
     max_backoffs: int = 10
     backoffs_per_column: int = 5
@@ -89,14 +88,9 @@ def _columns(hm: HexMesh) -> tuple[int, int]:
     return len(hm.points) // (L + 1), L
 
 
-def _restack(bone: np.ndarray, top: np.ndarray, L: int) -> np.ndarray:
-    t = np.arange(L + 1)[:, None, None] / L
-    return (bone[None] + t * (top - bone)[None]).reshape(-1, 3)
-
-
 def _tangent(v: np.ndarray, n: np.ndarray) -> np.ndarray:
-    t = v - (v * n).sum(1, keepdims=True) * n
-    return t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    """Unit rows of ``v`` (N, 3) projected onto the planes of unit normals ``n`` (N, 3)."""
+    return unit(v - (v * n).sum(1, keepdims=True) * n)
 
 
 def _outward(bone: np.ndarray, normal: np.ndarray, ring: np.ndarray, e: np.ndarray, depth: int) -> np.ndarray:
@@ -160,8 +154,8 @@ def _clearance(bone: np.ndarray, edge_ids: np.ndarray, e: np.ndarray, hops: int 
 
 def _floors(ring_elem: np.ndarray, edge_floor: float) -> np.ndarray:
     """The scaled Jacobian each element must keep after blending: ``edge_floor`` in the outermost
-    ring, 0.5 beyond."""
-    return np.where(ring_elem == 0, edge_floor, 0.5)
+    ring, the gate's beyond."""
+    return np.where(ring_elem == 0, edge_floor, MIN_SCALED_JACOBIAN)
 
 
 def _closest(surface: pv.PolyData, pts: np.ndarray) -> np.ndarray:
@@ -203,8 +197,7 @@ class _Bone:
     def normal(self, pts: np.ndarray) -> np.ndarray:
         d, i = self.tree.query(pts, k=8)
         w = np.exp(-0.5 * (d / self.sigma) ** 2)[..., None]
-        n = (self.normals[i] * w).sum(1)
-        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        return unit((self.normals[i] * w).sum(1))
 
 
 class _RowMemo:
@@ -238,7 +231,7 @@ def _bad_columns(quads: np.ndarray, b: np.ndarray, a: np.ndarray, floor: np.ndar
                  elements: np.ndarray | None = None) -> np.ndarray:
     """Columns (P,) with a node in an element below its ``floor`` (L * Q,), among ``elements``
     (L * Q,) bool or all.  The layers run straight between the bone-side and articular nodes
-    ``b``, ``a`` (P, 3) (:func:`_restack`), so the column optimiser's :func:`.optimize.layer_quality`
+    ``b``, ``a`` (P, 3) (:func:`kneemesh_core.geometry.interpolate_layers`), so the column optimiser's :func:`.optimize.layer_quality`
     scores them: the gate's Verdict scaled Jacobian without building a VTK grid each time
     (0 where an edge has collapsed, below every floor)."""
     q = len(quads)
@@ -261,13 +254,14 @@ def fuse(hm: HexMesh, bone: "_Bone", opts: BlendOptions = BlendOptions()) -> tup
     quads = _layer0_quads(hm)
     target = bone.closest(b)
     move = np.linalg.norm(target - b, axis=1) <= opts.fuse_max_mm
-    # the outermost ring may drop to 0.2 (blending then keeps it at its edge floor or gives up there); the rest keeps 0.5
+    # the outermost ring may drop to the blend's floor (blending then keeps it at its edge floor or
+    # gives up there); the rest keeps the gate's
     sj = layer_quality(np.concatenate([b[quads], a[quads]], axis=1), L)[0].ravel()  # as _bad_columns scores
-    floor = np.where(hm.ring == 0, 0.2, np.minimum(sj, 0.5))
+    floor = np.where(hm.ring == 0, BLEND_MIN_SCALED_JACOBIAN, np.minimum(sj, MIN_SCALED_JACOBIAN))
     move = _accept(hm, b, a, target, move, floor, opts.max_backoffs)
-    # a bone-side node left inside the bone should still come out: its outer two rings may drop to 0.2
+    # a bone-side node left inside the bone should still come out: its outer two rings may drop to the blend's floor
     inside = ~move & (bone.signed(b) < -FUSED_TOL_MM)
-    floor = np.where(hm.ring <= 1, 0.2, floor)
+    floor = np.where(hm.ring <= 1, BLEND_MIN_SCALED_JACOBIAN, floor)
     if inside.any():
         move = _accept(hm, b, a, target, move | inside, floor, opts.max_backoffs, fixed=move)
         # dropping every column of an offending element also drops innocent neighbours: offer the
@@ -277,7 +271,7 @@ def fuse(hm: HexMesh, bone: "_Bone", opts: BlendOptions = BlendOptions()) -> tup
     lifted, a = _lift(hm, b, a, bone, floor)
     move &= (lifted == b).all(1)  # a fused node lifted with its neighbour is off the bone now
     b = lifted
-    return dataclasses.replace(hm, points=_restack(b, a, L)), move
+    return dataclasses.replace(hm, points=interpolate_layers(b, a, L)), move
 
 
 def _lift(hm: HexMesh, b: np.ndarray, a: np.ndarray, bone: "_Bone", floor: np.ndarray,
@@ -297,7 +291,7 @@ def _lift(hm: HexMesh, b: np.ndarray, a: np.ndarray, bone: "_Bone", floor: np.nd
     quads = _layer0_quads(hm)
     e = quad_edges(quads)
     for _ in range(rounds):  # each way out is only right near where it was measured: measure again
-        pts = _restack(b, a, L).reshape(L + 1, P, 3)
+        pts = interpolate_layers(b, a, L).reshape(L + 1, P, 3)
         sd = bone.signed(pts.reshape(-1, 3)).reshape(L + 1, P)
         depth = -sd.min(0)
         need = np.where(depth > FUSED_TOL_MM, depth + 0.01, 0.0)
@@ -308,7 +302,7 @@ def _lift(hm: HexMesh, b: np.ndarray, a: np.ndarray, bone: "_Bone", floor: np.nd
         deepest = pts[sd[:, cols].argmin(0), cols]
         shortest = normal.copy()
         out = bone.closest(deepest) - deepest
-        shortest[cols] = out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
+        shortest[cols] = unit(out)
         best = None
         for lift in (_spread(need, e, spread) for spread in spreads):
             near = (lift > 0)[hm.hexes % P].any(1)  # only these elements change
@@ -316,7 +310,7 @@ def _lift(hm: HexMesh, b: np.ndarray, a: np.ndarray, bone: "_Bone", floor: np.nd
                 nb, na = b + lift[:, None] * d, a + lift[:, None] * d
                 if _bad_columns(quads, nb, na, floor, near).any():
                     continue
-                left = -bone.signed(_restack(nb, na, L).reshape(L + 1, P, 3)[:, lift > 0].reshape(-1, 3)).min()
+                left = -bone.signed(interpolate_layers(nb, na, L).reshape(L + 1, P, 3)[:, lift > 0].reshape(-1, 3)).min()
                 if best is None or left < best[0]:
                     best = (left, nb, na)
         if best is None or best[0] >= depth.max():
@@ -452,7 +446,7 @@ def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptio
         slope = np.radians(opts.angle_deg) * np.clip((height - cap) / np.maximum(height * (1 - opts.edge_height), 1e-9), 0, 1)
         lean = np.where(zone, scale * np.tan(slope / 2), 0.0) * np.linalg.norm(new_col, axis=1)
         new_col += lean[:, None] * _tangent(out, n_new)
-        return _restack(new_b, new_b + new_col, L)
+        return interpolate_layers(new_b, new_b + new_col, L)
 
     def offending(pts: np.ndarray, scale: np.ndarray) -> np.ndarray:
         bad = _bad_columns(quads, pts[:P], pts[L * P:], floor, moving)
@@ -502,11 +496,7 @@ def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptio
 
 def _bone_normals(b: np.ndarray, quads: np.ndarray, column: np.ndarray) -> np.ndarray:
     """Unit normals (P, 3) of the bone-side quad surface at its nodes, towards the articular side."""
-    n = np.zeros((len(b), 3))
-    fn = np.cross(b[quads[:, 2]] - b[quads[:, 0]], b[quads[:, 3]] - b[quads[:, 1]])
-    for k in range(4):
-        np.add.at(n, quads[:, k], fn)
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    n = unit(quad_node_normals(b, quads))
     return n * np.sign((n * column).sum(1, keepdims=True) + 1e-12)
 
 

@@ -18,14 +18,14 @@ from __future__ import annotations
 import numpy as np
 import pyvista as pv
 
-from kneemesh_core.hexmesh.blend import FUSED_TOL_MM
+from kneemesh_core.hexmesh.targets import FUSED_TOL_MM
 from kneemesh_core.surfaces.metrics import crossing_edges, signed_distance
 
 
 def conform_bone(bone: pv.PolyData, cartilages: dict[str, pv.UnstructuredGrid], *, clearance_mm: float = 0.02,
                  max_dent_mm: float = 2.0, rounds: int = 8) -> tuple[pv.PolyData, dict]:
     """The bone surface (closed, LPS mm) dented so that no node of ``cartilages`` (their hex meshes,
-    with point data ``bone_side``) lies more than :data:`.blend.FUSED_TOL_MM` inside it.
+    with point data ``bone_side``) lies more than :data:`.targets.FUSED_TOL_MM` inside it.
 
     Returns the new surface (the input itself where nothing was inside, or the dent was refused)
     and what was done: ``applied``, ``vertices_moved``, ``max_dent_mm``, and per cartilage the

@@ -1,8 +1,9 @@
 """Projection domains: a 2-D parameter plane (s, t) in mm and a ray through every point of it.
 
-A plane for each tibial plate and for the patella (rays along the plane
-normal), a cylinder about the femoral condylar axis for the femoral cartilage
-(rays radial from the axis).  Along a ray, ``h`` is the height above the plane
+A plane for each tibial plate (rays along the plane normal), a cylinder about
+the femoral condylar axis for the femoral cartilage and about the patella's
+superior-inferior axis for the patellar cartilage (rays radial from the axis);
+an implausible cylinder fit falls back to a plane (:mod:`.mesher`).  Along a ray, ``h`` is the height above the plane
 or the distance from the axis, mm; ``position(s, t, h)`` is the 3-D LPS point.
 """
 

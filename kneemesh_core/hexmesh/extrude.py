@@ -7,14 +7,14 @@
    projection direction is not sheared.  Where that ray misses (the rim), the
    domain ray's articular height is used.
 3. Every column keeps a minimum height, ``layers x longest adjacent edge /
-   5.8``, so no element's edge ratio exceeds 5.8 (the reconstructed rim tapers
+   EDGE_RATIO_AIM``, so no element's edge ratio exceeds it (the reconstructed rim tapers
    to nothing; a final guard also checks the articular faces), and the
    thickness of the two outer rings is smoothed so the articular surface does
    not drop over a single element.
 4. Each node's column direction is chosen among blends of the bone normal
    and the domain ray to maximise the worst element around it
    (:mod:`.optimize`: the elements of every layer, scaled Jacobian
-   first, then edge ratio); where an element stays below 0.5, the column may
+   first, then edge ratio); where an element stays below the gate, the column may
    be shortened or lengthened by up to 20%, and at last (untangling) its
    articular node may step off the surface by up to 0.4 mm or its bone-side
    node slide along the bone surface, carrying the column.
@@ -30,13 +30,13 @@ from dataclasses import dataclass
 import numpy as np
 import pyvista as pv
 
+from kneemesh_core.geometry import interpolate_layers, quad_node_normals, unit
 from kneemesh_core.hexmesh.footprint import Footprint
 from kneemesh_core.hexmesh.optimize import choose_columns, choose_tops, settle
 from kneemesh_core.hexmesh.quadmesh import EIGHT_DIRECTIONS, QuadMesh, quad_edges
 from kneemesh_core.hexmesh.rays import crossings, intersector
+from kneemesh_core.hexmesh.targets import EDGE_RATIO_AIM, MIN_SCALED_JACOBIAN
 
-#: Largest edge ratio the rim columns are built for.
-EDGE_RATIO_TARGET = 5.8
 
 
 @dataclass
@@ -61,11 +61,6 @@ class HexMesh:
     node_edge: np.ndarray
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    """Rows of (N, 3) scaled to unit length."""
-    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
-
-
 def _node_mean(values: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:
     """Mean of each node's neighbours' values over the edge graph."""
     acc = np.zeros((n,) + values.shape[1:])
@@ -88,7 +83,7 @@ def _edge_ratio_guard(bone: np.ndarray, top: np.ndarray, quads: np.ndarray, laye
             np.linalg.norm(bone[quads] - bone[np.roll(quads, -1, axis=1)], axis=2),
             np.linalg.norm(top[quads] - top[np.roll(quads, -1, axis=1)], axis=2)], axis=1).max(1)
         need = np.zeros(len(bone))
-        np.maximum.at(need, quads.ravel(), np.repeat(layers * ring_edges / EDGE_RATIO_TARGET, 4))
+        np.maximum.at(need, quads.ravel(), np.repeat(layers * ring_edges / EDGE_RATIO_AIM, 4))
         need = np.minimum(need, cap)
         length = np.linalg.norm(top - bone, axis=1)
         short = length < need
@@ -119,25 +114,21 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
     n = len(qm.points)
     quads = qm.quads
     tm = intersector(surface)
-    inward = -fp.gradient(qm.points)
-    inward /= np.maximum(np.linalg.norm(inward, axis=1, keepdims=True), 1e-12)
+    inward = unit(-fp.gradient(qm.points))
     probe = np.where(qm.contour[:, None], qm.points + probe_mm * inward, qm.points)
     bone = domain.position(qm.points, fp.sample(fp.bone, probe))
     ray_top = domain.position(qm.points, fp.sample(fp.joint, probe))
     edges = quad_edges(quads)
 
     # bone-side normals (quads are counter-clockwise seen from the joint: normals point to the joint)
-    p = bone[quads]
-    qn = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
-    normal = np.zeros((n, 3))
-    np.add.at(normal, quads.ravel(), np.repeat(qn, 4, axis=0))
+    normal = quad_node_normals(bone, quads)
     for _ in range(3):
-        normal = 0.5 * _unit(normal)
+        normal = 0.5 * unit(normal)
         normal = normal + _node_mean(normal, edges, n)
-    normal = _unit(normal)
+    normal = unit(normal)
 
     fallback = np.linalg.norm(ray_top - bone, axis=1)
-    ray_dir = _unit(ray_top - bone)
+    ray_dir = unit(ray_top - bone)
 
     # rim: a minimum column height for the edge ratio, and smoothing of the outer rings
     node_ring = np.full(n, np.iinfo(np.int64).max)
@@ -147,7 +138,7 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
     longest = np.zeros(n)
     np.maximum.at(longest, quads.ravel(), np.repeat(quad_longest, 4))
     # (capped: a stretched bone-side quad must not raise a column to absurd heights)
-    floor = np.minimum(layers * longest / EDGE_RATIO_TARGET, 2.0 * np.median(fallback))
+    floor = np.minimum(layers * longest / EDGE_RATIO_AIM, 2.0 * np.median(fallback))
     rim = node_ring <= 1
 
     def column(direction: np.ndarray) -> np.ndarray:
@@ -162,23 +153,23 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
             thick = np.where(rim, 0.5 * thick + 0.5 * _node_mean(thick, edges, n), thick)
         return bone + direction * np.maximum(thick, floor)[:, None]
 
-    candidates = [column(_unit(w * normal + (1 - w) * ray_dir)) for w in (1.0, 0.75, 0.5, 0.25, 0.0)]
+    candidates = [column(unit(w * normal + (1 - w) * ray_dir)) for w in (1.0, 0.75, 0.5, 0.25, 0.0)]
     top = choose_tops(bone, np.stack(candidates), quads, layers)
     # smoothing constrained to the articular surface: each column may take the mean
     # direction of its neighbours' columns, re-cast onto the surface
     # ... or tilt a little in any of four directions, re-cast onto the surface
-    t1 = _unit(np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
+    t1 = unit(np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
     t2 = np.cross(normal, t1)
     for _ in range(4):
-        d = _unit(top - bone)
-        tries = [top, column(_unit(d + _node_mean(d, edges, n))), column(_unit(_node_mean(top, edges, n) - bone))]
-        tries += [column(_unit(d + a * t)) for a in (0.15, -0.15) for t in (t1, t2)]
+        d = unit(top - bone)
+        tries = [top, column(unit(d + _node_mean(d, edges, n))), column(unit(_node_mean(top, edges, n) - bone))]
+        tries += [column(unit(d + a * t)) for a in (0.15, -0.15) for t in (t1, t2)]
         top = choose_tops(bone, np.stack(tries), quads, layers)
     # last resort where a column is still poor: a slightly shorter or taller column
     # (leaves the articular surface by a fraction of the local thickness, there only)
     length_now = np.linalg.norm(top - bone, axis=1, keepdims=True)
-    variants = [bone + _unit(top - bone) * np.maximum(length_now * f, floor[:, None]) for f in (1.0, 0.9, 1.1, 0.8, 1.2)]
-    top = choose_tops(bone, np.stack(variants), quads, layers, good=0.5)
+    variants = [bone + unit(top - bone) * np.maximum(length_now * f, floor[:, None]) for f in (1.0, 0.9, 1.1, 0.8, 1.2)]
+    top = choose_tops(bone, np.stack(variants), quads, layers, good=MIN_SCALED_JACOBIAN)
     # untangling where an element is still below 0.5 (a handful of nodes; the others stay put):
     # an articular node may step off the surface by fractions of a millimetre, or a bone-side
     # node slide along the bone surface (contour nodes along the contour), its column carried along
@@ -187,14 +178,14 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
     for _ in range(8):
         col = top - bone
         length = np.linalg.norm(col, axis=1, keepdims=True)
-        tops = [top, _node_mean(top, edges, n), bone + _unit(_node_mean(_unit(col), edges, n)) * length]
+        tops = [top, _node_mean(top, edges, n), bone + unit(_node_mean(unit(col), edges, n)) * length]
         tops += [top + a * t for a in (0.4, -0.4, 0.2, -0.2, 0.1, -0.1, 0.05, -0.05) for t in (t1, t2, normal)]
         slides = [_onto_contour(fp, u + a * h_mm * d, qm.contour) for a in (0.3, 0.12) for d in EIGHT_DIRECTIONS]
         lifted = [domain.position(v, fp.sample(fp.bone, np.where(qm.contour[:, None], v + probe_mm * inward, v)))
                   for v in slides]
         bottoms = np.stack([bone] * len(tops) + lifted)
         columns = np.stack(tops + [b + col for b in lifted])
-        k = choose_columns(bottoms, columns, quads, layers, good=0.5)
+        k = choose_columns(bottoms, columns, quads, layers, good=MIN_SCALED_JACOBIAN)
         if not k.any():  # nothing moved: another pass would offer the same candidates
             break
         slid = k >= len(tops)
@@ -206,8 +197,7 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
     _, closest = surface.find_closest_cell(top, return_closest_point=True)
     top = settle(bone, top, closest, quads, layers)
 
-    frac = (np.arange(layers + 1) / layers)[:, None, None]
-    points = (bone[None] + (top - bone)[None] * frac).reshape(-1, 3)
+    points = interpolate_layers(bone, top, layers)
     offsets = (np.arange(layers) * n)[:, None, None]
     hexes = np.concatenate([quads[None] + offsets, quads[None] + offsets + n], axis=2).reshape(-1, 8)
     q = len(quads)

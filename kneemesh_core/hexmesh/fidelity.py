@@ -7,13 +7,9 @@ import pyvista as pv
 
 from kneemesh_core.hexmesh.extrude import HexMesh
 from kneemesh_core.hexmesh.quality import boundary_surface, to_grid
+from kneemesh_core.hexmesh.targets import (COVERAGE_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM,
+                                           MIN_COVERAGE, VOLUME_TOL)
 from kneemesh_core.surfaces.metrics import distance_to_surface
-
-#: A reconstructed surface patch counts as covered within this distance of the mesh, mm.
-COVERAGE_TOL_MM = 0.5
-#: The fidelity targets: volume within this fraction of the label's, at least this much coverage.
-VOLUME_TOL = 0.05
-MIN_COVERAGE = 0.97
 
 
 def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float) -> dict:
@@ -46,8 +42,8 @@ def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float) -> dict:
 def fidelity_checks(f: dict) -> dict[str, bool]:
     """Each fidelity target of a :func:`fidelity` result, met or not."""
     return {"volume": abs(f["volume_error"]) <= VOLUME_TOL, "coverage": f["coverage"] >= MIN_COVERAGE,
-            "deviation_median": f["surface_deviation_mm"]["median"] <= 0.15,
-            "deviation_p95": f["surface_deviation_mm"]["p95"] <= 0.5}
+            "deviation_median": f["surface_deviation_mm"]["median"] <= MAX_DEVIATION_MEDIAN_MM,
+            "deviation_p95": f["surface_deviation_mm"]["p95"] <= MAX_DEVIATION_P95_MM}
 
 
 def passes_fidelity(f: dict) -> bool:

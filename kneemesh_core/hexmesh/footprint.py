@@ -45,9 +45,6 @@ class Footprint:
         """Holes in the footprint (full-thickness defects the mesh keeps open)."""
         return len(enclosed_holes(self.inside)[1])
 
-    def area_mm2(self) -> float:
-        return float(self.inside.sum() * self.grid.step**2)
-
 
 def enclosed_holes(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Holes of a 2-D mask: the labelled background (same shape) and the labels of the background
@@ -57,9 +54,9 @@ def enclosed_holes(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lab, np.setdiff1d(np.arange(1, n + 1), border)
 
 
-def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction: float = 0.35,
-                   max_slope_deg: float = 55.0, fold_slope_deg: float = 80.0, s_scale: np.ndarray | float = 1.0,
-                   min_area: float = 4.0, min_hole: float = 1.0, smooth_mm: float = 1.0) -> Footprint:
+def find_footprint(hf: HeightField, *, min_thickness: float, edge_fraction: float, max_slope_deg: float,
+                   fold_slope_deg: float, s_scale: np.ndarray | float = 1.0, min_area: float = 4.0,
+                   min_hole: float = 1.0, smooth_mm: float = 1.0) -> Footprint:
     """Footprint of a height field.
 
     Rays longer than three median thicknesses graze the cartilage sheet and
@@ -79,7 +76,8 @@ def find_footprint(hf: HeightField, *, min_thickness: float = 0.2, edge_fraction
     filled, before and after the contour is smoothed with a Gaussian of
     ``smooth_mm``: ray noise, or a pinhole smaller than the elements could
     ring with a pillow (the caller passes about twice an element's area).
-    Larger holes (full-thickness defects) stay.
+    Larger holes (full-thickness defects) stay.  The thresholds have no defaults here: the
+    mesher's :class:`.mesher.HexOptions` is their one home.
     """
     step = hf.step
     px = step * step

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from kneemesh_core.hexmesh.targets import EDGE_RATIO_AIM, MIN_SCALED_JACOBIAN as GATE
+
 
 def _sq(v: np.ndarray) -> np.ndarray:
     """Squared length of vectors stored coordinate-first (3, ...)."""
@@ -80,14 +82,16 @@ def column_score(cols: np.ndarray, layers: int = 1) -> np.ndarray:
     score = np.minimum(sj.min(0), shrink)
     if layers == 1:
         return score
-    # the edge ratio counts fully while it scores >= 0.5; below that only a little (never more than
-    # 0.0015), so the optimiser never gives up a scaled Jacobian >= 0.5 for an edge ratio
-    er = 1.0 - 0.5 * (ratio.max(0) - ER_FREE) / (ER_AT_HALF - ER_FREE)
-    return np.minimum(score, np.where(er >= 0.5, er, 0.5 + 0.001 * np.maximum(er - 0.5, -1.5)))
+    # the edge ratio counts fully while it scores >= the gate's Jacobian; below that only a little
+    # (never more than 0.0015), so the optimiser never gives up a scaled Jacobian within the gate
+    # for an edge ratio
+    er = 1.0 - (1.0 - GATE) * (ratio.max(0) - ER_FREE) / (ER_AT_HALF - ER_FREE)
+    return np.minimum(score, np.where(er >= GATE, er, GATE + 0.001 * np.maximum(er - GATE, -1.5)))
 
 
-#: Edge ratios up to ER_FREE cost nothing; ER_AT_HALF scores 0.5, as low as the gate lets the Jacobian go.
-ER_FREE, ER_AT_HALF = 4.5, 5.8
+#: Edge ratios up to ER_FREE cost nothing; ER_AT_HALF scores the gate's Jacobian, as low as it lets
+#: the Jacobian go.
+ER_FREE, ER_AT_HALF = 4.5, EDGE_RATIO_AIM
 
 
 def choose_tops(bottom: np.ndarray, candidates: np.ndarray, quads: np.ndarray, layers: int = 1, sweeps: int = 8,

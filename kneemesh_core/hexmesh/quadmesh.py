@@ -24,6 +24,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage.measure import find_contours
 
+from kneemesh_core.geometry import unit
 from kneemesh_core.hexmesh.footprint import Footprint, enclosed_holes
 from kneemesh_core.hexmesh.optimize import MoveScores, independent, node_min
 
@@ -171,8 +172,7 @@ def quad_mesh(fp: Footprint, h: float, *, inset: float = 0.5) -> QuadMesh:
     # projection can), then smoothing along the loop, kept on the contour
     pos = points[bverts]
     tangent = points[[nxt[v] for v in bverts]] - points[[prv[v] for v in bverts]]
-    normal = np.stack([tangent[:, 1], -tangent[:, 0]], 1)
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    normal = unit(np.stack([tangent[:, 1], -tangent[:, 0]], 1))
     partner = pos + normal * _root_along(fp, pos, normal, 2.0 * h)[:, None]
     slot = {v: i for i, v in enumerate(bverts.tolist())}
     partner, on_poly, polys = _spread_on_contour(fp, partner, bverts, nxt, slot, h)

@@ -22,6 +22,7 @@ import SimpleITK as sitk
 
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.io import dicom
+from kneemesh_core.io.files import atomic_path
 
 #: Largest volume accepted, in voxels (about 2 GB as float32).
 MAX_VOXELS = 512 * 1024 * 1024
@@ -239,22 +240,13 @@ def read_label_map(path: str | os.PathLike, *, max_voxels: int = MAX_VOXELS) -> 
 
 
 def write_image(image: sitk.Image, path: str | os.PathLike) -> Path:
-    """Write an image atomically (temporary file then rename), compressed.
+    """Write an image atomically (:func:`.files.atomic_path`), compressed.
 
     Use ``.nrrd`` for hand-offs inside the pipeline: it keeps the geometry exact.
     """
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    suffix = _suffix(out)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=out.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         sitk.WriteImage(image, tmp, useCompression=True)
-        os.replace(tmp, out)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return out
+    return Path(path)
 
 
 def voxel_to_lps(image: sitk.Image, ijk: np.ndarray) -> np.ndarray:

@@ -81,10 +81,6 @@ class KneeFields:
     meniscus: np.ndarray  # bool
 
 
-#: Fields whose zero level sets define the tissues; evaluated coarse, upsampled.
-_FIELDS = ("femur", "tibia", "patella", "fibula", "fc", "tc", "pc", "meniscus")
-
-
 def knee_fields(u, v, w, p: KneeParams, rng: np.random.Generator) -> dict[str, np.ndarray]:
     """Continuous fields (mm, negative inside) of every tissue, on broadcastable coordinates.
 

@@ -26,8 +26,9 @@ from kneemesh_core.segmentation.postprocess import clean_classes
 from kneemesh_core.segmentation.preprocess import NET_CLASSES, from_slices, to_slices
 from kneemesh_core.tissues import PRESETS
 
-#: The shipped model (see its model card beside it).
-DEFAULT_MODEL = Path(__file__).resolve().parent / "models" / "kneemesh-seg.onnx"
+#: The models shipped with the package, and the default one (see its model card beside it).
+MODELS_DIR = Path(__file__).resolve().parent / "models"
+DEFAULT_MODEL = MODELS_DIR / "kneemesh-seg.onnx"
 #: Network class -> value in the oai-zib convention, whose merged tibial label canonicalise splits.
 _NET_TO_OAI_ZIB = np.array([0, 1, 3, 5, 2, 4, 6], dtype=np.uint8)
 

@@ -16,7 +16,6 @@ import numpy as np
 import SimpleITK as sitk
 
 from kneemesh_core.errors import KneeMeshError
-from kneemesh_core.tissues import LABEL
 
 #: Orientation of the network's slices (ITK code: index axes point towards P, I and R).
 NET_ORIENTATION = "PIR"
@@ -25,9 +24,6 @@ NET_CLASSES: tuple[str, ...] = ("background", "femur", "tibia", "patella", "femo
                                 "tibial_cartilage", "patellar_cartilage")
 #: Canonical label value (0..7) -> network class.
 CANONICAL_TO_NET = np.array([0, 1, 2, 3, 4, 5, 5, 6], dtype=np.uint8)
-#: Network class -> canonical label (the tibial class goes to the medial plate until it is split).
-NET_TO_CANONICAL = np.array([0, LABEL["femur"], LABEL["tibia"], LABEL["patella"], LABEL["femoral_cartilage"],
-                             LABEL["medial_tibial_cartilage"], LABEL["patellar_cartilage"]], dtype=np.uint8)
 #: Intensity percentiles mapped to 0 and 1.
 PERCENTILES = (0.5, 99.5)
 #: Slice sizes are padded to a multiple of this (the network halves them five times).

@@ -16,16 +16,6 @@ class Error(BaseModel):
     details: list[dict] | None = None
 
 
-class Options(BaseModel):
-    input_type: Literal["labels", "image"] = "labels"
-    preset: str | None = None
-    side: Literal["left", "right"] | None = None
-    only: Literal["all", "bones", "cartilage"] = "all"
-    element_size: float = Field(1.0, gt=0.2, le=5.0, description="Cartilage in-plane element edge, mm.")
-    layers: int = Field(4, ge=1, le=12, description="Cartilage element layers through the thickness.")
-    blend: bool = Field(True, description="Blend the cartilage edge into the bone and fuse it onto the bone.")
-
-
 class Links(BaseModel):
     self: str
     artifacts: str

@@ -1,6 +1,6 @@
 """The Celery application: one task, ``kneemesh.step``, and the canvas that chains a job's plan.
 
-Each step of ``kneemesh_core.pipeline.plan`` is one task; a stage with several
+Each step of ``kneemesh_core.job.plan`` is one task; a stage with several
 steps (the three bones, the four cartilages) is a group, so Celery chains it
 into a chord with the next stage. New stages (attachment sites, FE decks, a
 simulation) join the plan and appear here without any change.
@@ -26,7 +26,7 @@ from celery import Celery, chain, group
 from celery.exceptions import Ignore
 from kombu.exceptions import OperationalError
 
-from kneemesh_core.pipeline import JobOptions, plan, run_step
+from kneemesh_core.job import JobOptions, plan, run_step
 from services.jobs import Jobs
 from services.settings import Settings
 from services.store import FileStore

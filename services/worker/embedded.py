@@ -3,21 +3,40 @@
 Jobs run one after another in submission order (one dispatcher thread); the
 steps of each stage share the pool, exactly as ``kneemesh mesh`` runs them.
 Jobs left unfinished by a previous run of the server are resumed at start:
-their finished steps are skipped.
+their finished steps are skipped.  The pool's processes end with the server however it
+ends (a clean stop, a crash, ``kill -9``, the OOM killer): each watches its parent and
+exits once it is gone, so no orphan keeps meshing or holding memory.
 """
 
 from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import queue
 import threading
+import time
 from concurrent.futures import ProcessPoolExecutor
 
-from kneemesh_core.pipeline import JobCancelled, JobOptions, run
+from kneemesh_core.job import JobCancelled, JobOptions, run
 from services.jobs import FINISHED, Jobs
 
 log = logging.getLogger("kneemesh.embedded")
+
+#: How often a pool process checks that its server is still there, s.
+PARENT_CHECK_S = 0.5
+
+
+def _exit_with_parent(parent_pid: int) -> None:
+    """Pool initializer: a daemon thread ends this process once ``parent_pid`` is no longer its
+    parent (the server died, and this process was handed to init or a subreaper)."""
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_CHECK_S)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="kneemesh-parent-watch", daemon=True).start()
 
 
 class EmbeddedRunner:
@@ -32,7 +51,8 @@ class EmbeddedRunner:
     def start(self, jobs: Jobs) -> None:
         self._jobs = jobs
         # spawn: the server has threads, and forking a threaded process can deadlock.
-        self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"))
+        self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=_exit_with_parent, initargs=(os.getpid(),))
         self._thread = threading.Thread(target=self._loop, name="kneemesh-embedded", daemon=True)
         self._thread.start()
         for rec in jobs.all():

@@ -1,0 +1,34 @@
+"""Small vector helpers on arrays of points, shared by the mesher, the blend and the anatomy.
+
+All take and return plain arrays in LPS mm; shapes are in each docstring.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Vectors shorter than this are treated as zero length when normalised.
+EPS = 1e-12
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` (N, D) scaled to unit length; zero rows stay (near) zero."""
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), EPS)
+
+
+def quad_node_normals(points: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """Unnormalised node normals (P, 3) of a quad surface: the sum of the diagonal cross products of
+    the quads (Q, 4) around each node of ``points`` (P, 3); they point to the side from which the
+    quads run counter-clockwise."""
+    p = points[quads]
+    qn = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+    normal = np.zeros((len(points), 3))
+    np.add.at(normal, quads.ravel(), np.repeat(qn, 4, axis=0))
+    return normal
+
+
+def interpolate_layers(bottom: np.ndarray, top: np.ndarray, layers: int) -> np.ndarray:
+    """The nodes of ``layers`` element layers spaced evenly along straight columns from ``bottom``
+    to ``top`` (both (P, 3)): ((layers + 1) * P, 3), layer by layer, bottom first."""
+    frac = (np.arange(layers + 1) / layers)[:, None, None]
+    return (bottom[None] + (top - bottom)[None] * frac).reshape(-1, 3)

@@ -1,0 +1,44 @@
+"""Every target a cartilage mesh is held to, in one place: the mesher, the blend, the reports and
+the tests read them here.
+
+The gate (judged on the swept mesh, before blending) follows Gibbons et al. 2022: no element
+below a scaled Jacobian of 0.5, nothing collapsed or inverted. The fidelity targets say how well
+the mesh stands for the cartilage label; the blend targets what the blended, fused mesh must keep.
+"""
+
+from __future__ import annotations
+
+# -- the quality gate ---------------------------------------------------------------------------
+#: Every element's scaled Jacobian (Verdict) at least this.
+MIN_SCALED_JACOBIAN = 0.5
+#: An element's longest over shortest edge ...
+MAX_EDGE_RATIO = 6.0
+#: ... may exceed MAX_EDGE_RATIO for at most this fraction of the elements.
+MAX_FRAC_EDGE_RATIO = 0.001
+#: What the rim columns and the column optimiser aim for: a little under MAX_EDGE_RATIO, so that
+#: the articular faces' own edge ratios (checked last) stay within the gate.
+EDGE_RATIO_AIM = 5.8
+
+# -- fidelity to the label ----------------------------------------------------------------------
+#: A reconstructed-surface patch counts as covered within this distance of the mesh, mm.
+COVERAGE_TOL_MM = 0.5
+#: At least this fraction of the reconstructed surface's area covered.
+MIN_COVERAGE = 0.97
+#: Mesh volume within this fraction of the label's.
+VOLUME_TOL = 0.05
+#: Articular nodes' distance to the reconstructed surface, mm: median and 95th percentile.
+MAX_DEVIATION_MEDIAN_MM = 0.15
+MAX_DEVIATION_P95_MM = 0.5
+#: An attempt further off the label's volume than this is no mesh of the cartilage at all.
+MAX_ATTEMPT_VOLUME_ERROR = 0.5
+
+# -- after blending and fusion ------------------------------------------------------------------
+#: Worst element after blending (the outermost ring may drop this low; from ring 2 inwards every
+#: element keeps MIN_SCALED_JACOBIAN), ...
+BLEND_MIN_SCALED_JACOBIAN = 0.2
+#: ... with at least this fraction of elements at MIN_SCALED_JACOBIAN or better (the paper's
+#: blended meshes reach about 95 %).
+BLEND_FRAC_GOOD = 0.99
+#: A bone-side node this close to the bone counts as fused, and no node may lie deeper than this
+#: inside its bone, mm.
+FUSED_TOL_MM = 0.05

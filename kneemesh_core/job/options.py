@@ -1,0 +1,103 @@
+"""What a user can ask of a job, declared once: :class:`JobRequest` (the user's view, with each
+default, bound and description) builds :class:`JobOptions` (the pipeline's view).
+
+The command line and the API both take a :class:`JobRequest`, so every option a user can set
+on one can be set on the other, with the same defaults and bounds.  This is the bottom of
+:mod:`kneemesh_core.job`: it imports nothing else of it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from kneemesh_core.errors import KneeMeshError
+from kneemesh_core.hexmesh import BlendOptions, HexOptions
+from kneemesh_core.surfaces.tissue import SurfaceOptions
+from kneemesh_core.tissues import BONES, CARTILAGES, TISSUES
+
+INPUT_TYPES = ("labels", "image")
+#: The tissue groups a job can be limited to (``only``).
+GROUPS = {"bones": BONES, "cartilage": CARTILAGES, "all": TISSUES}
+
+
+@dataclasses.dataclass(frozen=True)
+class JobOptions:
+    """Everything the steps of one job need to know, as plain data a queue can carry (:meth:`to_dict`)."""
+
+    input_type: str = "labels"  # or "image": a DESS volume, segmented first
+    model: str | None = None  # segmentation model (default: the shipped one)
+    preset: str | None = None
+    labels: str | None = None
+    side: str | None = None
+    only: str = "all"
+    stl: bool = False
+    bundle: bool = False
+    surface: SurfaceOptions = SurfaceOptions()
+    hex: HexOptions = HexOptions()
+    blend: BlendOptions | None = BlendOptions()  # None: keep the step at the cartilage edge
+
+    def tissues(self) -> tuple[str, ...]:
+        if self.only not in GROUPS:
+            raise KneeMeshError("bad_option", f"--only {self.only!r}: expected one of {', '.join(GROUPS)}.")
+        return GROUPS[self.only]
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "JobOptions":
+        d = dict(d)
+        d["surface"] = SurfaceOptions(**d.get("surface", {}))
+        d["hex"] = HexOptions(**d.get("hex", {}))
+        if "blend" in d:
+            d["blend"] = None if d["blend"] is None else BlendOptions(**d["blend"])
+        return cls(**d)
+
+
+class JobRequest(BaseModel):
+    """The options a user sets for one job, from the command line or the API: each default and bound
+    is declared here and nowhere else."""
+
+    model_config = ConfigDict(frozen=True)
+
+    input_type: Literal["labels", "image"] = Field(
+        "labels", description="labels (a segmentation) or image (a sagittal DESS volume, segmented first).")
+    model: str | None = Field(
+        None, description="Segmentation model for image inputs: an .onnx file (the API takes the name of one "
+                          "shipped with the server); default: the shipped model.")
+    preset: str | None = Field(
+        None, description="Label convention: kneemesh, pymskt, oai-zib, imorphics (default: detect).")
+    labels: str | None = Field(
+        None, description="Custom label mapping 'femur=5,tibia=6,...' (the command line also takes a JSON file).")
+    side: Literal["left", "right"] | None = Field(None, description="left or right (default: detect and report how).")
+    only: Literal["all", "bones", "cartilage"] = Field("all", description="Tissues to mesh: all, bones or cartilage.")
+    element_size: float = Field(1.0, ge=0.2, le=5.0, allow_inf_nan=False,
+                                description="Cartilage in-plane element edge, mm.")
+    layers: int = Field(4, ge=1, le=12, description="Cartilage element layers through the thickness.")
+    blend: bool = Field(True, description="Blend the cartilage edge into the bone and fuse it onto the bone.")
+    blend_angle: float = Field(45.0, ge=20.0, le=80.0, allow_inf_nan=False,
+                               description="Angle at which the blended cartilage edge meets the bone, deg.")
+    bone_edge: float = Field(3.0, ge=0.5, le=10.0, allow_inf_nan=False, description="Target bone triangle edge, mm.")
+    stl: bool = Field(False, description="Also write the bone shells as .stl.")
+
+    @classmethod
+    def build(cls, **given) -> "JobRequest":
+        """A request from the options a user gave (None: not given, so the default); a value out of
+        bounds is a ``bad_option`` error that names the option and what is expected."""
+        try:
+            return cls(**{k: v for k, v in given.items() if v is not None})
+        except ValidationError as exc:
+            raise KneeMeshError("bad_option", "; ".join(
+                f"{'.'.join(map(str, e['loc'])) or 'options'}: {e['msg']}" for e in exc.errors())) from None
+
+    def job_options(self, *, bundle: bool = False) -> JobOptions:
+        """The pipeline's options for this request; ``bundle`` zips the outputs (the service does)."""
+        return JobOptions(
+            input_type=self.input_type, model=self.model, preset=self.preset, labels=self.labels, side=self.side,
+            only=self.only, stl=self.stl, bundle=bundle,
+            surface=SurfaceOptions(bone_edge_mm=self.bone_edge),
+            hex=HexOptions(element_size=self.element_size, layers=self.layers),
+            blend=BlendOptions(angle_deg=self.blend_angle) if self.blend else None)

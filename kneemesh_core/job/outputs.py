@@ -1,0 +1,115 @@
+"""The job folder: its file names, the step records, ``report.json`` and the bundle.
+
+Every file here is written atomically (:mod:`kneemesh_core.io.files`): a status page or a
+client reading the folder mid-job sees each file whole or not at all.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+import os
+import zipfile
+from pathlib import Path
+
+import pyvista as pv
+
+from kneemesh_core.io.files import TMP_PREFIX, atomic_path, atomic_write_json
+from kneemesh_core.tissues import TISSUES
+
+LABELS_FILE = "labels.nrrd"
+JOB_FILE = "job.json"
+REPORT_FILE = "report.json"
+BUNDLE_FILE = "bundle.zip"
+MANIFEST_FILE = "artifacts.json"
+STEPS_DIR = "steps"
+MESHES_DIR = "meshes"
+SURFACES_DIR = "surfaces"
+#: What the bundle carries: labels used, meshes, surfaces, the report.
+BUNDLED = (LABELS_FILE, JOB_FILE, REPORT_FILE, f"{MESHES_DIR}/*", f"{SURFACES_DIR}/*")
+
+
+def utc_now() -> str:
+    """The time now, UTC, ISO 8601 to the millisecond (the stamps of step and job records)."""
+    return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def save_mesh(mesh: pv.DataSet, path: Path) -> None:
+    """Write a mesh atomically; the format follows the suffix (.vtp, .vtu, .stl)."""
+    with atomic_path(path) as tmp:
+        mesh.save(tmp)
+
+
+def read_json(path: Path) -> dict:
+    return json.loads(Path(path).read_text())
+
+
+def write_json(path: Path, data: dict) -> None:
+    atomic_write_json(path, data, indent=2)
+
+
+def read_step(out_dir: str | os.PathLike, step: str) -> dict | None:
+    """The record of one step (``state``: running, done or failed), or None if it never started."""
+    try:
+        return read_json(Path(out_dir) / STEPS_DIR / f"{step}.json")
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+
+
+def write_step(out_dir: str | os.PathLike, step: str, record: dict) -> None:
+    folder = Path(out_dir) / STEPS_DIR
+    folder.mkdir(exist_ok=True)
+    atomic_write_json(folder / f"{step}.json", {"step": step, **record})
+
+
+def write_report(out_dir: str | os.PathLike, entries: dict[str, dict], conformed: dict | None = None) -> dict:
+    """``report.json`` from ``job.json``, the tissue entries and what the conform step did (each
+    bone's entry gains ``conformed``, each of its cartilages' ``bone_conform``)."""
+    out = Path(out_dir)
+    job = read_json(out / JOB_FILE)
+    entries = {t: dict(e) for t, e in entries.items()}
+    for bone, facts in (conformed or {}).items():
+        per = facts["cartilages"]
+        if bone in entries:
+            entries[bone]["conformed"] = {k: v for k, v in facts.items() if k != "cartilages"}
+        for t, f in per.items():
+            if t in entries:
+                entries[t]["bone_conform"] = f
+    report = {
+        **job,
+        "tissues": {t: entries[t] for t in TISSUES if t in entries},
+        "summary": {
+            "ok": sorted(t for t, e in entries.items() if e["status"] == "ok"),
+            "failed": sorted(t for t, e in entries.items() if e["status"] != "ok"),
+        },
+    }
+    write_json(out / REPORT_FILE, report)
+    return report
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def bundle(out_dir: str | os.PathLike) -> list[dict]:
+    """Zip the job's outputs into ``bundle.zip`` and list every artifact in ``artifacts.json``.
+
+    Returns the list: ``name`` (path relative to ``out_dir``, '/'-separated), ``size`` (bytes)
+    and ``sha256``, the bundle last.
+    """
+    out = Path(out_dir)
+    files = sorted({f for pattern in BUNDLED for f in out.glob(pattern) if f.is_file() and not f.name.startswith(TMP_PREFIX)})
+    with atomic_path(out / BUNDLE_FILE) as tmp:
+        # Level 1: meshes are binary and barely compress further; speed matters more.
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+            for f in files:
+                zf.write(f, f.relative_to(out).as_posix())
+    manifest = [{"name": f.relative_to(out).as_posix(), "size": f.stat().st_size, "sha256": sha256(f)}
+                for f in [*files, out / BUNDLE_FILE]]
+    atomic_write_json(out / MANIFEST_FILE, manifest)
+    return manifest

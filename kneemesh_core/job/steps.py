@@ -1,0 +1,146 @@
+"""What runs on one knee: each function is one step of the plan, working in the job folder.
+
+Every argument is a path, a name or a plain dict, so a queue can carry it.  A tissue step
+never raises: its failure is its report entry (a failed tissue never sinks the knee).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import traceback
+from pathlib import Path
+
+import pyvista as pv
+
+from kneemesh_core import __version__
+from kneemesh_core.errors import KneeMeshError
+from kneemesh_core.hexmesh import blend_cartilage, mesh_cartilage
+from kneemesh_core.hexmesh.conform import conform_bone
+from kneemesh_core.io import read_label_map, read_volume, write_image
+from kneemesh_core.job.options import INPUT_TYPES, JobOptions
+from kneemesh_core.job.outputs import (JOB_FILE, LABELS_FILE, MESHES_DIR, SURFACES_DIR, read_json, save_mesh,
+                                       write_json)
+from kneemesh_core.knee import canonicalise, describe, describe_image
+from kneemesh_core.surfaces.tissue import reconstruct_bone
+from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, resolve_convention
+
+
+def ingest(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: JobOptions) -> dict:
+    """Validate the input and write canonical labels and ``job.json``.
+
+    Nothing is written unless the input is valid.
+    """
+    options.tissues()
+    if options.input_type not in INPUT_TYPES:
+        raise KneeMeshError("bad_option", f"input type {options.input_type!r}: expected one of {', '.join(INPUT_TYPES)}.")
+    knee = None
+    if options.input_type == "image":  # checked here, segmented by the segment step
+        from kneemesh_core.segmentation.infer import SegmentationModel
+
+        vol = read_volume(input_path)
+        SegmentationModel.load(options.model)  # a missing or foreign model fails here, before anything is queued
+        description = describe_image(vol.image, vol.source)
+    else:
+        knee = canonicalise(read_label_map(input_path), resolve_convention(options.preset, options.labels), options.side)
+        description = describe(knee)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if knee is not None:
+        write_image(knee.labels, out / LABELS_FILE)
+    job = {"kneemesh_version": __version__, "input": description, "options": options.to_dict()}
+    write_json(out / JOB_FILE, job)
+    return job
+
+
+def segment_input(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: JobOptions) -> dict:
+    """Image inputs: segment the image into canonical labels ``labels.nrrd``; ``job.json`` gains the
+    knee's description and the segmentation's facts."""
+    from kneemesh_core.segmentation.infer import SegmentationModel, segment
+
+    out = Path(out_dir)
+    model = SegmentationModel.load(options.model)
+    result = segment(read_volume(input_path), model, side=options.side)
+    write_image(result.knee.labels, out / LABELS_FILE)
+    job = read_json(out / JOB_FILE)
+    facts = {"model": model.path.name, "model_version": model.meta.get("version"), "seconds": result.seconds,
+             "image": job["input"]}
+    job["input"] = {**describe(result.knee), "preset": "segmented", "segmentation": facts}
+    write_json(out / JOB_FILE, job)
+    return {"status": "ok", "side": result.knee.side, "seconds": result.seconds["total"],
+            "tissues_ml": job["input"]["tissues"]}
+
+
+def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
+    """Mesh one tissue of an ingested job; returns its report entry, never raises.
+
+    A bone is a closed shell (``meshes/<bone>.vtp``, and ``.stl`` on request); a cartilage
+    an all-hex mesh (``meshes/<cartilage>.vtu``, ``.rejected.vtu`` when it misses the gate)
+    blended and fused onto the bone mesh its bone's step wrote, and its surface
+    (``surfaces/<cartilage>.vtp``).
+    """
+    t0 = time.perf_counter()
+    opts = JobOptions.from_dict(options)
+    out = Path(out_dir)
+    try:
+        labels = read_label_map(out / LABELS_FILE).image
+        folder = out / MESHES_DIR
+        folder.mkdir(exist_ok=True)
+        if tissue in BONES:
+            mesh, facts = reconstruct_bone(labels, tissue, opts.surface)
+            files = [folder / f"{tissue}.vtp"] + ([folder / f"{tissue}.stl"] if opts.stl else [])
+            for f in files:
+                save_mesh(mesh, f)
+            entry = {"status": "ok", **facts}
+        else:
+            cm = mesh_cartilage(labels, tissue, opts.hex)
+            ok = cm.facts["gate_passed"]
+            if ok and opts.blend is not None:  # the bone stage ran first: fuse onto the bone mesh it wrote
+                bone_file = folder / f"{BONE_OF[tissue]}.vtp"
+                cm = blend_cartilage(cm, pv.read(bone_file) if bone_file.exists() else None, opts.blend)
+            facts = cm.facts
+            (out / SURFACES_DIR).mkdir(exist_ok=True)
+            files = [folder / f"{tissue}{'' if ok else '.rejected'}.vtu", out / SURFACES_DIR / f"{tissue}.vtp"]
+            save_mesh(cm.grid(), files[0])
+            save_mesh(cm.surface, files[1])
+            entry = {"status": "ok" if ok else "failed", **facts}
+            if not ok:
+                entry["code"] = "quality_gate"
+                entry["reason"] = (f"quality gate not met after {len(facts['attempts'])} attempts: min scaled Jacobian "
+                                   f"{facts['min_scaled_jacobian']}, {facts['inverted']} inverted, "
+                                   f"{facts['frac_edge_ratio_above_6']:.4%} with edge ratio > 6, "
+                                   f"{facts['self_intersections']} boundary edges crossing; best mesh kept as {files[0].name}")
+        entry["files"] = [str(f.relative_to(out)) for f in files]
+    except KneeMeshError as exc:
+        entry = {"status": "failed", "reason": exc.message, "code": exc.code}
+    except Exception as exc:  # a failed tissue never sinks the rest of the knee
+        entry = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}", "code": "internal",
+                 "traceback": traceback.format_exc(limit=5)}
+    entry["seconds"] = round(time.perf_counter() - t0, 3)
+    return entry
+
+
+def conform_bones(out_dir: str | os.PathLike, options: dict) -> dict:
+    """Each bone surface gives way where the accepted meshes of its cartilages still lie inside it
+    (:func:`kneemesh_core.hexmesh.conform.conform_bone`); the bone's files are rewritten only where
+    it changed.  Returns what was done per bone.  Idempotent: a second run finds no cartilage
+    inside and changes nothing."""
+    opts = JobOptions.from_dict(options)
+    folder = Path(out_dir) / MESHES_DIR
+    done = {}
+    for bone in BONES:
+        files = [folder / f"{bone}.vtp"] + ([folder / f"{bone}.stl"] if opts.stl else [])
+        grids = {t: pv.read(folder / f"{t}.vtu") for t in CARTILAGES
+                 if BONE_OF[t] == bone and (folder / f"{t}.vtu").exists()}
+        if not files[0].exists() or not grids:
+            continue
+        try:
+            surface, facts = conform_bone(pv.read(files[0]), grids)
+        except Exception as exc:  # the bone stays as meshed; the knee goes on
+            done[bone] = {"applied": False, "reason": f"{type(exc).__name__}: {exc}", "cartilages": {}}
+            continue
+        if facts["applied"]:
+            for f in files:
+                save_mesh(surface, f)
+        done[bone] = facts
+    return done

@@ -1,0 +1,54 @@
+"""``/v1/jobs``: upload one knee and queue its job, list, status, cancel and delete."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
+
+from kneemesh_core.job import JobRequest
+from services.api import deps, schemas
+from services.api.errors import ERRORS
+from services.api.metrics import Metrics
+from services.api.uploads import accept, enqueue
+from services.api.views import job_created, job_status, job_summary
+from services.jobs import FINISHED, JobRecord, Jobs
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=ERRORS)
+
+
+@router.post("", status_code=202, response_model=schemas.JobCreated)
+async def create_job(request: Request, file: Annotated[UploadFile, File(description="The label map or image.")],
+                     options: Annotated[JobRequest, Form()], who: str = Depends(deps.owner),
+                     jobs: Jobs = Depends(deps.jobs), metrics: Metrics = Depends(deps.metrics),
+                     runner=Depends(deps.runner)):
+    """Upload one knee and queue its job; the input is validated first, and a bad one queues nothing."""
+    rec = await accept(jobs, metrics, file, options, who, None)
+    enqueue(jobs, metrics, runner, rec)
+    return job_created(request, jobs, rec)
+
+
+@router.get("", response_model=schemas.JobList)
+def list_jobs(request: Request, who: str = Depends(deps.owner), jobs: Jobs = Depends(deps.jobs)):
+    """This key's jobs, oldest first."""
+    return schemas.JobList(jobs=[job_summary(request, jobs, r) for r in jobs.all() if r.owner == who])
+
+
+@router.get("/{job_id}", response_model=schemas.JobStatus)
+def get_job(request: Request, rec: JobRecord = Depends(deps.own_job), jobs: Jobs = Depends(deps.jobs)):
+    """State, queue position, progress of every step (ingest, segment, each bone, each cartilage, conform, report, bundle), errors."""
+    return job_status(request, jobs, rec)
+
+
+@router.delete("/{job_id}", response_model=schemas.JobStatus)
+def delete_job(request: Request, rec: JobRecord = Depends(deps.own_job), jobs: Jobs = Depends(deps.jobs),
+               runner=Depends(deps.runner)):
+    """Cancel the job if it has not finished, and delete its upload and artifacts."""
+    steps = jobs.steps(rec)
+    if jobs.state(rec, steps) not in FINISHED:
+        rec.cancelled = True
+    rec.deleted = True
+    jobs.save(rec)
+    runner.cancel(rec, steps)
+    jobs.store.delete(rec.id)
+    return job_status(request, jobs, rec)

@@ -1,0 +1,39 @@
+"""What the API shows of a job: its links, its status and its one-line summary."""
+
+from __future__ import annotations
+
+from fastapi import Request
+
+from services.api import schemas
+from services.jobs import JobRecord, Jobs
+
+
+def links(request: Request, job_id: str) -> schemas.Links:
+    return schemas.Links(self=str(request.url_for("get_job", job_id=job_id)),
+                         artifacts=str(request.url_for("list_artifacts", job_id=job_id)),
+                         bundle=str(request.url_for("get_bundle", job_id=job_id)))
+
+
+def job_status(request: Request, jobs: Jobs, rec: JobRecord) -> schemas.JobStatus:
+    steps = jobs.steps(rec)
+    state = jobs.state(rec, steps)
+    failed_step = next((s for s in steps if s["state"] == "failed"), None)
+    tissues = [s for s in steps if s["kind"] in ("bone", "cartilage") and s["state"] == "done"]
+    return schemas.JobStatus(
+        id=rec.id, state=state, created_at=rec.created_at, input_name=rec.input_name, input_type=rec.input_type,
+        options=rec.options, batch_id=rec.batch_id,
+        queue_position=jobs.queue_position(rec) if state == "queued" else None,
+        progress=round(sum(s["state"] in ("done", "failed") for s in steps) / max(len(steps), 1), 3),
+        steps=steps, tissues_ok=[s["step"] for s in tissues if s["status"] == "ok"],
+        tissues_failed=[s["step"] for s in tissues if s["status"] != "ok"],
+        error=failed_step.get("error") if failed_step else None, deleted=rec.deleted, urls=links(request, rec.id))
+
+
+def job_summary(request: Request, jobs: Jobs, rec: JobRecord) -> schemas.JobSummary:
+    return schemas.JobSummary(id=rec.id, state=jobs.state(rec, jobs.steps(rec)), created_at=rec.created_at,
+                              input_name=rec.input_name, url=str(request.url_for("get_job", job_id=rec.id)))
+
+
+def job_created(request: Request, jobs: Jobs, rec: JobRecord) -> schemas.JobCreated:
+    return schemas.JobCreated(id=rec.id, state="queued", queue_position=jobs.queue_position(rec),
+                              urls=links(request, rec.id))
