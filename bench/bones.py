@@ -22,22 +22,21 @@ from pathlib import Path
 
 import numpy as np
 import pyvista as pv
-from rich.console import Console
-from rich.progress import track
 from rich.table import Table
 
+from kneemesh.console import console as make_console
 from kneemesh_core.knee import load_knee
 from kneemesh_core.surfaces.metrics import surface_distance, topology
-from kneemesh_core.surfaces.tissue import SurfaceOptions, label_surface, reconstruct
+from kneemesh_core.surfaces.tissue import SurfaceOptions, label_surface, reconstruct_bone
 from kneemesh_core.tissues import BONES, LABEL
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
-console = Console()
+console = make_console()
 
 
 def kneemesh_bone(labels, bone):
     t = time.perf_counter()
-    mesh, facts = reconstruct(labels, bone, SurfaceOptions())
+    mesh, facts = reconstruct_bone(labels, bone, SurfaceOptions())
     return mesh, time.perf_counter() - t
 
 
@@ -83,7 +82,7 @@ def main() -> None:
                 "pymskt s", "pymskt dist mean/p95", "pymskt vol err", "pymskt closed", "speed-up"):
         table.add_column(col)
     with ProcessPoolExecutor(2) as pool:
-        for path in track(maps, description="knees", console=console):
+        for i, path in enumerate(maps, 1):
             knee = load_knee(path)
             r = {"knee": path.name, "km_s": 0.0, "pm_s": 0.0, "km": [], "pm": []}
             for bone in BONES:
@@ -99,6 +98,9 @@ def main() -> None:
             list(pool.map(_pool_bone, [(path, b) for b in ("femur", "tibia", "patella")]))
             r["km_wall"] = time.perf_counter() - t
             rows.append(r)
+            # a line per knee, in a terminal or a log: a long run shows that it is alive
+            console.print(f"[{i}/{len(maps)}] {path.name}: KneeMesh {r['km_s']:.1f} s, pymskt {r['pm_s']:.1f} s",
+                          highlight=False)
 
             def fmt(ms):
                 if not ms:

@@ -21,11 +21,12 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from rich.console import Console
 from rich.table import Table
 
+from kneemesh.console import console as make_console
+
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
-console = Console(width=200)
+console = make_console()
 
 
 def main() -> None:

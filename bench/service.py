@@ -25,15 +25,15 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
-from rich.console import Console
 from rich.table import Table
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "real"
 sys.path.insert(0, str(ROOT / "tests"))
+from kneemesh.console import console as make_console  # noqa: E402
 from service_helpers import FINISHED, RedisServer, free_port, wait_for  # noqa: E402
 
-console = Console(width=160)
+console = make_console()
 
 
 def _t(stamp: str) -> float:
@@ -88,13 +88,13 @@ def service(maps: list[Path], concurrency: int, only: str, tmp: Path) -> tuple[l
 
 
 def in_process(maps: list[Path], workers: int, only: str, tmp: Path) -> tuple[dict[str, float], float]:
-    from kneemesh_core.pipeline import JobOptions, run
+    from kneemesh_core.job import JobRequest, run
 
     times = {}
     t0 = time.time()
     for m in maps:
         t = time.time()
-        run(m, tmp / f"cli{workers}" / m.name, JobOptions(only=only), workers=workers)
+        run(m, tmp / f"cli{workers}" / m.name, JobRequest.build(only=only).job_options(), workers=workers)
         times[m.name] = time.time() - t
     return times, time.time() - t0
 
