@@ -172,6 +172,16 @@ def _run_job(input_path: Path, out_dir: Path, request: JobRequest, workers: int)
         t.add_row(tissue, status, f"{e['seconds']:.1f}", count, f"{e['volume_ml']:.2f}", f"{e['label_volume_ml']:.2f}",
                   quality, fid)
     out.print(t)
+    if "anatomy" in report:
+        a = report["anatomy"]
+        if a["status"] == "failed":
+            out.print(f"anatomy: [red]failed[/]: {a['reason']}")
+        else:
+            res = ", ".join(f"{b} {r:.2f}" for b, r in a["residuals_mm"].items())
+            ang = a["angles_deg"]
+            out.print(f"anatomy: {a['status']}; {a['sites_placed']} attachment sites of {a['fibres']} fibres; registration "
+                      f"residuals {res} mm; flexion {ang['flexion']:.1f}, varus {ang['varus']:.1f}, internal rotation "
+                      f"{ang['internal_rotation']:.1f} deg" + "".join(f"\n  review: {r}" for r in a["reasons"]), highlight=False)
     out.print(f"report: {Path(out_dir) / 'report.json'}")
     if report["summary"]["failed"]:
         raise typer.Exit(1)

@@ -16,6 +16,7 @@ import SimpleITK as sitk
 from scipy import ndimage as ndi
 
 from kneemesh_core import side as side_mod
+from kneemesh_core.anatomy.frames import coarse_axes
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.io import Volume, read_label_map, voxel_to_lps, voxel_volume_ml
 from kneemesh_core.tissues import (
@@ -79,9 +80,29 @@ def _lps_points(image: sitk.Image, mask: np.ndarray) -> np.ndarray:
     return voxel_to_lps(image, np.argwhere(mask)[:, ::-1])
 
 
-def _centroid_x(image: sitk.Image, mask: np.ndarray) -> float:
+def _centroid(image: sitk.Image, mask: np.ndarray) -> np.ndarray:
+    """LPS mm (3,) of the centroid of a (z, y, x) boolean mask's voxels."""
     idx = np.argwhere(mask)[:, ::-1].mean(0, keepdims=True)
-    return float(voxel_to_lps(image, idx)[0, 0])
+    return voxel_to_lps(image, idx)[0]
+
+
+def _surface_points(image: sitk.Image, mask: np.ndarray, n: int = 4000) -> np.ndarray:
+    """LPS mm (<= n, 3) of a mask's boundary voxels, evenly subsampled."""
+    nz = np.argwhere(mask)
+    lo, hi = nz.min(0), nz.max(0) + 1
+    box = mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    edge = np.argwhere(box & ~ndi.binary_erosion(box)) + lo
+    return voxel_to_lps(image, edge[:: max(1, len(edge) // n), ::-1])
+
+
+def _shape_side(image: sitk.Image, canon: np.ndarray, axes) -> dict:
+    """Left or right from the bones' shape (:func:`kneemesh_core.anatomy.register.side_by_shape`)."""
+    from kneemesh_core.anatomy.register import side_by_shape
+    from kneemesh_core.anatomy.template import load
+
+    template = load()
+    subject = {b: _surface_points(image, canon == LABEL[b]) for b in ("tibia", "femur")}
+    return side_by_shape({b: template.points(b) for b in subject}, subject, axes)
 
 
 def canonicalise(
@@ -115,14 +136,22 @@ def canonicalise(
         raise KneeMeshError("empty_labels", f"{Path(vol.source).name}: no tissue of the {convention.name!r} convention.")
 
     knee_mask = canon > 0
-    knee_x = _centroid_x(image, knee_mask) if knee_mask.any() else None
+    knee_x = float(_centroid(image, knee_mask)[0]) if knee_mask.any() else None
+    # the knee's own axes from where its bones lie (a label map need not be in a scanner's frame)
+    bones = {b: canon == LABEL[b] for b in ("femur", "tibia", "patella")}
+    coarse = None
+    axes = None
+    if bones["femur"].any() and bones["tibia"].any():
+        coarse = coarse_axes(_centroid(image, bones["femur"])[None], _centroid(image, bones["tibia"])[None],
+                             _centroid(image, bones["patella"])[None] if bones["patella"].any() else None)
+        axes = side_mod.KneeAxes(coarse.centre, coarse.right)
     labelled_ml = None
     mtc, ltc = canon == LABEL["medial_tibial_cartilage"], canon == LABEL["lateral_tibial_cartilage"]
     if mtc.any() and ltc.any():
-        labelled_ml = (_centroid_x(image, mtc), _centroid_x(image, ltc))
+        labelled_ml = (_centroid(image, mtc), _centroid(image, ltc))
     fib_vals = convention.value_of("fibula")
     fibula = np.isin(arr, fib_vals) if fib_vals else None
-    fibula_x = _centroid_x(image, fibula) if fibula is not None and fibula.any() else None
+    fibula_c = _centroid(image, fibula) if fibula is not None and fibula.any() else None
 
     plates = None
     merged = None
@@ -139,17 +168,20 @@ def canonicalise(
         explicit=side,
         dicom_meta=vol.meta,
         filename=Path(vol.source).name,
+        axes=axes,
         labelled_ml=labelled_ml,
-        fibula_x=fibula_x,
+        fibula=fibula_c,
         knee_x=knee_x,
         plates=plates,
+        shape=(lambda: _shape_side(image, canon, coarse)) if coarse is not None else None,
     )
     if merged is not None and merged.any():
         if plates is None:  # too few voxels to split: they all go to the +x plate
             plus = np.ones(int(merged.sum()), dtype=bool)
         else:
             plus = plates.plus_x
-        medial_is_plus = side_mod.medial_sign(decision.side) > 0
+        right = axes.right if axes is not None else np.array([-1.0, 0.0, 0.0])
+        medial_is_plus = side_mod.medial_direction(decision.side, right)[0] > 0
         values = np.where(plus == medial_is_plus, LABEL["medial_tibial_cartilage"], LABEL["lateral_tibial_cartilage"])
         canon[merged] = values.astype(np.uint8)
 

@@ -4,24 +4,30 @@ Wrong medial/lateral silently ruins a study, so every decision records the
 evidence it used, and conflicting evidence is an error that asks for
 ``--side`` rather than a guess.
 
-The LPS frame fixes the patient's left-right axis: +x points to the
-patient's left.  In a right knee the medial side therefore faces +x, in a
-left knee -x.  Evidence, strongest first:
+Medial and lateral are read in the knee's own frame (:class:`KneeAxes`: the patient's right
+is anterior x superior, from where the femur, tibia and patella lie), so a label map in a
+frame of its own (not a scanner's) is read as truly as a scan.  In a scanner's LPS frame the
+patient's right is -x, and a right knee's medial side faces +x.  Evidence, strongest first:
 
 1. an explicit side;
 2. DICOM laterality tags or the series description (OAI: ``SAG_3D_DESS_RIGHT``);
 3. a ``left``/``right`` token in the file name;
-4. labels that already separate medial and lateral tibial cartilage, or a fibula label;
-5. anatomy: the medial tibial plateau is longer antero-posteriorly than the
-   lateral one (41 of 42 real knees here, the 42nd within 2%), taken only
-   when the difference is clear (> 5%), cross-checked with the scanner
-   position of the knee (a knee coil sits off the isocentre on the knee's own side).
+4. labels that already separate medial and lateral tibial cartilage;
+5. anatomy.  Strong: a fibula label (the fibula is lateral) and the whole bones' shape (which
+   of the template knee or its mirror image fits the tibia and femur better,
+   :func:`kneemesh_core.anatomy.register.side_by_shape`); these must agree with each other.
+   Weak: the medial tibial plateau is longer antero-posteriorly than the lateral one (41 of 42
+   real knees here, the 42nd within 2%; only a difference over 5% counts), and the scanner
+   position of the knee (a knee coil sits off the isocentre on the knee's own side).  Weak
+   evidence decides only when there is no strong evidence, and then only when it agrees; where
+   it disagrees with strong evidence it is recorded as overruled.
 """
 
 from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -35,6 +41,14 @@ _ANATOMY_MIN_LOG_RATIO = 0.05
 _POSITION_MIN_MM = 25.0
 
 
+@dataclass(frozen=True)
+class KneeAxes:
+    """The knee's centre (LPS mm) and the patient's right as a unit vector, from its bones."""
+
+    centre: np.ndarray
+    right: np.ndarray
+
+
 @dataclass
 class SideDecision:
     side: str
@@ -42,9 +56,10 @@ class SideDecision:
     evidence: dict = field(default_factory=dict)
 
 
-def medial_sign(side: str) -> float:
-    """+1 if the knee's medial side faces LPS +x (right knee), -1 for a left knee."""
-    return 1.0 if side == "right" else -1.0
+def medial_direction(side: str, right: np.ndarray) -> np.ndarray:
+    """The direction (3,) of a ``side`` knee's medial side: towards the patient's left in a right
+    knee, towards the patient's right in a left knee."""
+    return -np.asarray(right) if side == "right" else np.asarray(right)
 
 
 def side_from_text(text: str | None) -> str | None:
@@ -64,9 +79,10 @@ def side_from_dicom(meta: dict) -> str | None:
     return side_from_text(meta.get("series_description")) or side_from_text(meta.get("protocol_name"))
 
 
-def side_from_medial_lateral(medial_x: float, lateral_x: float) -> str:
-    """Side from the LPS x of medial and lateral structures' centroids."""
-    return "right" if medial_x > lateral_x else "left"
+def side_from_medial_lateral(medial: np.ndarray, lateral: np.ndarray, right: np.ndarray) -> str:
+    """Side from the centroids (3,) of a medial and a lateral structure and the patient's right:
+    a right knee's lateral side is the patient's right."""
+    return "right" if (np.asarray(lateral) - np.asarray(medial)) @ right > 0 else "left"
 
 
 def split_axis(points_xy: np.ndarray) -> np.ndarray:
@@ -149,18 +165,24 @@ def decide(
     explicit: str | None = None,
     dicom_meta: dict | None = None,
     filename: str | None = None,
-    labelled_ml: tuple[float, float] | None = None,
-    fibula_x: float | None = None,
+    axes: KneeAxes | None = None,
+    labelled_ml: tuple[np.ndarray, np.ndarray] | None = None,
+    fibula: np.ndarray | None = None,
     knee_x: float | None = None,
     plates: PlateSplit | None = None,
+    shape: Callable[[], dict] | None = None,
 ) -> SideDecision:
     """Weigh the evidence in order of strength and return the side.
 
     Parameters
     ----------
-    labelled_ml : (medial_x, lateral_x) LPS mm of labelled medial/lateral tibial cartilage centroids.
-    fibula_x, knee_x : LPS x (mm) of the fibula and of the knee's centre.
+    axes : the knee's centre and the patient's right (without bones: the scanner's, -x).
+    labelled_ml : centroids (3,) LPS mm of labelled medial and lateral tibial cartilage.
+    fibula : the fibula's centroid (3,) LPS mm.
+    knee_x : LPS x (mm) of the knee's centre (the scanner position).
     plates : the split of a merged tibial cartilage label.
+    shape : asked only when the anatomy decides: the side by shape
+        (:func:`kneemesh_core.anatomy.register.side_by_shape`'s result).
     """
     if explicit:
         if explicit not in SIDES:
@@ -170,24 +192,48 @@ def decide(
         return SideDecision(s, "dicom", {"series_description": dicom_meta.get("series_description")})
     if filename and (s := side_from_text(filename)):
         return SideDecision(s, "file_name", {"file_name": filename})
+    axes = axes or KneeAxes(np.zeros(3), np.array([-1.0, 0.0, 0.0]))
     if labelled_ml is not None:
-        return SideDecision(side_from_medial_lateral(*labelled_ml), "labels_medial_lateral",
-                            {"medial_x_mm": labelled_ml[0], "lateral_x_mm": labelled_ml[1]})
+        return SideDecision(side_from_medial_lateral(*labelled_ml, axes.right), "labels_medial_lateral",
+                            {"medial_mm": _round(labelled_ml[0]), "lateral_mm": _round(labelled_ml[1]),
+                             "patient_right": _round(axes.right, 4)})
     evidence: dict = {}
-    votes: dict[str, str] = {}
-    if fibula_x is not None and knee_x is not None:
-        # the fibula is lateral: in a right knee lateral faces -x
-        votes["fibula"] = "right" if fibula_x < knee_x else "left"
-        evidence["fibula_x_mm"] = fibula_x
+    strong: dict[str, str] = {}
+    weak: dict[str, str] = {}
+    if fibula is not None:
+        # the fibula is lateral, and a right knee's lateral side is the patient's right
+        strong["fibula"] = "right" if (np.asarray(fibula) - axes.centre) @ axes.right > 0 else "left"
+        evidence["fibula_mm"] = _round(fibula)
+    if shape is not None:
+        found = shape()
+        evidence["shape"] = found
+        if found.get("side"):
+            strong["shape"] = found["side"]
     if plates is not None and np.isfinite(plates.ap_ratio_log):
         evidence["plate_ap_log_ratio"] = round(plates.ap_ratio_log, 4)
         if abs(plates.ap_ratio_log) >= _ANATOMY_MIN_LOG_RATIO:
-            # the longer plate is medial
-            votes["anatomy"] = "right" if plates.ap_ratio_log > 0 else "left"
+            # the longer plate is medial; the +x plate is medial in a right knee when the
+            # patient's right is -x (a scanner frame)
+            plus_x_medial = plates.ap_ratio_log > 0
+            weak["anatomy"] = "right" if plus_x_medial == (axes.right[0] < 0) else "left"
     if knee_x is not None:
         evidence["knee_x_mm"] = round(knee_x, 2)
         if abs(knee_x) >= _POSITION_MIN_MM:
-            votes["scanner_position"] = "right" if knee_x < 0 else "left"
+            weak["scanner_position"] = "right" if knee_x < 0 else "left"
+    if strong:
+        if len(set(strong.values())) > 1:
+            raise KneeMeshError(
+                "side_conflict",
+                "the evidence for left/right disagrees (" + ", ".join(f"{k} says {v}" for k, v in strong.items())
+                + "); pass --side left or --side right.")
+        side = next(iter(strong.values()))
+        overruled = {k: v for k, v in weak.items() if v != side}
+        if overruled:
+            evidence["overruled"] = overruled
+        votes = {**strong, **{k: v for k, v in weak.items() if v == side}}
+        evidence["votes"] = votes
+        return SideDecision(side, "+".join(votes), evidence)
+    votes = weak
     if not votes:
         raise KneeMeshError(
             "side_unknown",
@@ -204,3 +250,7 @@ def decide(
         )
     evidence["votes"] = votes
     return SideDecision(sides.pop(), "+".join(votes), evidence)
+
+
+def _round(v, n: int = 2) -> list[float]:
+    return [round(float(x), n) for x in v]

@@ -33,7 +33,7 @@ def test_inspect_json_real_left_and_sample():
 def test_inspect_oai_map():
     info = json.loads(run("inspect", real(OAI / "OAI_ZIB-UQ_9011115.nii.gz"), "--json").stdout)
     assert info["preset"] == "oai-zib" and info["side"] == "right"
-    assert info["side_method"] == "anatomy+scanner_position"
+    assert info["side_method"] == "shape+anatomy+scanner_position"
 
 
 def test_bad_input_one_line_no_traceback(tmp_path):

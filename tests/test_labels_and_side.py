@@ -73,7 +73,7 @@ def test_merged_plates_split_correctly_on_left_right_and_mirrored(path, mirrored
     assert knee.convention.name == "oai-zib"
     expected = {"right": "left", "left": "right"}[truth.side] if mirrored else truth.side
     assert knee.side == expected
-    assert "anatomy" in knee.side_method and "scanner_position" in knee.side_method
+    assert knee.side_method.startswith("shape")
     for lab in (MTC, LTC):
         assert _dice(knee.array == lab, truth_arr == lab) > 0.97
 
@@ -109,18 +109,19 @@ def test_oai_maps_are_right_knees_with_medial_plate_medial(name):
     assert knee.volumes_ml()["femur"] > 100  # lesion labels merged into the bone
 
 
-def test_conflicting_evidence_asks_for_side():
+def test_weak_evidence_that_disagrees_without_strong_evidence_asks_for_side():
+    """No bones to read the shape from, plates merged: plateau length against scanner position."""
     truth = canonicalise(_neutral(PYMSKT_RIGHT))
-    merged = _as_oai_zib(truth)
-    # mirror the voxels but not the header: anatomy says left, scanner position right
-    arr = sitk.GetArrayFromImage(merged)
-    a = int(np.argmax(np.abs(np.asarray(merged.GetDirection()).reshape(3, 3)[0])))
-    flipped = sitk.GetImageFromArray(np.flip(arr, axis=2 - a).copy())
-    flipped.CopyInformation(merged)
+    merged = sitk.GetArrayFromImage(_as_oai_zib(truth))
+    merged[np.isin(merged, [1, 3, 5])] = 0  # cartilage only (oai-zib values), so no shape to fit
+    a = int(np.argmax(np.abs(np.asarray(truth.labels.GetDirection()).reshape(3, 3)[0])))
+    flipped = sitk.GetImageFromArray(np.flip(merged, axis=2 - a).copy())  # voxels mirrored, header kept
+    flipped.CopyInformation(truth.labels)
+    conv = PRESETS["oai-zib"]
     with pytest.raises(KneeMeshError) as e:
-        canonicalise(Volume(flipped, "knee.nrrd"))
+        canonicalise(Volume(flipped, "knee.nrrd"), conv)
     assert e.value.code == "side_conflict" and "--side" in e.value.message
-    assert canonicalise(Volume(flipped, "knee.nrrd"), side="left").side == "left"
+    assert canonicalise(Volume(flipped, "knee.nrrd"), conv, side="left").side == "left"
 
 
 def test_imorphics_cartilage_only_is_ambiguous_until_preset_given():

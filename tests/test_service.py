@@ -82,7 +82,10 @@ def test_label_map_job_runs_every_tissue_as_its_own_celery_task(stack):
 
     listing = c.get(job["urls"]["artifacts"], headers=A).json()["artifacts"]
     names = {a["name"] for a in listing}
-    assert {"report.json", "labels.nrrd", "bundle.zip", "meshes/femur.vtp", "meshes/femoral_cartilage.vtu"} <= names
+    assert {"report.json", "labels.nrrd", "bundle.zip", "meshes/femur.vtp", "meshes/femoral_cartilage.vtu",
+            "attachments.json", "attachments.png"} <= names
+    assert steps["anatomy"]["state"] == "done" and steps["anatomy"]["task_id"] not in task_ids  # its own task
+    assert steps["anatomy"]["stage"] > steps["femoral_cartilage"]["stage"]
     for a in listing:
         if a["name"] in ("report.json", "bundle.zip"):
             body = c.get(a["url"], headers=A).content
@@ -92,6 +95,7 @@ def test_label_map_job_runs_every_tissue_as_its_own_celery_task(stack):
     assert {f"meshes/{t}.vtp" for t in TISSUES[:3]} | {f"meshes/{t}.vtu" for t in TISSUES[3:]} <= members
     report = json.loads(bundle.read("report.json"))
     assert report["summary"]["failed"] == [] and report["input"]["side"] == "right"
+    assert report["anatomy"]["sites_placed"] == 152 and "attachments.json" in members
     hexes = pv.read(stack.data / "jobs" / job["id"] / "out" / "meshes" / "medial_tibial_cartilage.vtu")
     assert hexes.n_cells > 500 and set(np.unique(hexes.celltypes)) == {pv.CellType.HEXAHEDRON}
     blend = report["tissues"]["medial_tibial_cartilage"]["blend"]  # fused onto the bone the job meshed first

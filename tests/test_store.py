@@ -8,17 +8,18 @@ import os
 
 import pytest
 
-from kneemesh_core.job import BUNDLE, CONFORM, INGEST, REPORT, JobOptions, bundle, plan
+from kneemesh_core.job import ANATOMY, BUNDLE, CONFORM, INGEST, REPORT, JobOptions, bundle, plan
 from services.jobs import Jobs
 from services.store import FileStore
 
 
 def test_plan_stages_bones_before_cartilage():
     stages = plan(JobOptions(bundle=True))
-    assert stages[0] == (INGEST,) and stages[-3:] == [(CONFORM,), (REPORT,), (BUNDLE,)]
+    assert stages[0] == (INGEST,) and stages[-4:] == [(CONFORM,), (ANATOMY,), (REPORT,), (BUNDLE,)]
     assert set(stages[1]) == {"femur", "tibia", "patella"} and stages[1][0] == "femur"
     assert len(stages[2]) == 4 and stages[2][0] == "femoral_cartilage"
-    assert plan(JobOptions(only="bones")) == [(INGEST,), ("femur", "tibia", "patella"), (REPORT,)]
+    assert plan(JobOptions(only="bones")) == [(INGEST,), ("femur", "tibia", "patella"), (ANATOMY,), (REPORT,)]
+    assert ANATOMY not in sum(plan(JobOptions(only="cartilage")), ())  # the sites need the bone meshes
     assert CONFORM not in sum(plan(JobOptions(blend=None)), ())  # the bones give way only to fused cartilage
 
 

@@ -29,6 +29,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[str]:
     suffix = ".nii.gz" if out.name.lower().endswith(".nii.gz") else out.suffix
     fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=suffix, dir=out.parent)
     os.close(fd)
+    os.chmod(tmp, 0o644)  # mkstemp makes it private; the output is for the lab to read
     try:
         yield tmp
         os.replace(tmp, out)

@@ -21,13 +21,15 @@ from kneemesh_core.tissues import TISSUES
 LABELS_FILE = "labels.nrrd"
 JOB_FILE = "job.json"
 REPORT_FILE = "report.json"
+ATTACHMENTS_FILE = "attachments.json"
+ATTACHMENTS_FIGURE = "attachments.png"
 BUNDLE_FILE = "bundle.zip"
 MANIFEST_FILE = "artifacts.json"
 STEPS_DIR = "steps"
 MESHES_DIR = "meshes"
 SURFACES_DIR = "surfaces"
-#: What the bundle carries: labels used, meshes, surfaces, the report.
-BUNDLED = (LABELS_FILE, JOB_FILE, REPORT_FILE, f"{MESHES_DIR}/*", f"{SURFACES_DIR}/*")
+#: What the bundle carries: labels used, meshes, surfaces, attachment sites and frames, the report.
+BUNDLED = (LABELS_FILE, JOB_FILE, REPORT_FILE, ATTACHMENTS_FILE, ATTACHMENTS_FIGURE, f"{MESHES_DIR}/*", f"{SURFACES_DIR}/*")
 
 
 def utc_now() -> str:
@@ -63,9 +65,11 @@ def write_step(out_dir: str | os.PathLike, step: str, record: dict) -> None:
     atomic_write_json(folder / f"{step}.json", {"step": step, **record})
 
 
-def write_report(out_dir: str | os.PathLike, entries: dict[str, dict], conformed: dict | None = None) -> dict:
-    """``report.json`` from ``job.json``, the tissue entries and what the conform step did (each
-    bone's entry gains ``conformed``, each of its cartilages' ``bone_conform``)."""
+def write_report(out_dir: str | os.PathLike, entries: dict[str, dict], conformed: dict | None = None,
+                 anatomy: dict | None = None) -> dict:
+    """``report.json`` from ``job.json``, the tissue entries, what the conform step did (each
+    bone's entry gains ``conformed``, each of its cartilages' ``bone_conform``) and the anatomy
+    step's entry (``anatomy``: residuals, angles, unplaced sites, status and reasons)."""
     out = Path(out_dir)
     job = read_json(out / JOB_FILE)
     entries = {t: dict(e) for t, e in entries.items()}
@@ -79,6 +83,7 @@ def write_report(out_dir: str | os.PathLike, entries: dict[str, dict], conformed
     report = {
         **job,
         "tissues": {t: entries[t] for t in TISSUES if t in entries},
+        **({"anatomy": anatomy} if anatomy is not None else {}),
         "summary": {
             "ok": sorted(t for t, e in entries.items() if e["status"] == "ok"),
             "failed": sorted(t for t, e in entries.items() if e["status"] != "ok"),

@@ -8,8 +8,10 @@ other, so a runner may run them in parallel:
 2. one step per bone, then one per cartilage (a cartilage is fused onto its bone's mesh);
 3. ``conform`` (with blending, when bones and cartilages are both meshed) lets each bone
    give way where a fused cartilage still dips into it;
-4. ``report`` gathers the entries into ``report.json``;
-5. ``bundle`` (optional) zips the outputs and lists every artifact.
+4. ``anatomy`` (when the bones are meshed) places the knee's frames and the ligament and
+   tendon attachment sites on the bone meshes;
+5. ``report`` gathers the entries into ``report.json``;
+6. ``bundle`` (optional) zips the outputs and lists every artifact.
 
 :func:`run_step` records each step in ``steps/<step>.json`` (running, done or failed, with
 times), which is what status pages read; a step already done is not run again, so a queue
@@ -27,10 +29,10 @@ from typing import Iterable
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.job.options import JobOptions
 from kneemesh_core.job.outputs import bundle, read_step, utc_now, write_report, write_step
-from kneemesh_core.job.steps import conform_bones, ingest, mesh_tissue, segment_input
+from kneemesh_core.job.steps import conform_bones, ingest, mesh_tissue, place_anatomy, segment_input
 from kneemesh_core.tissues import BONES, CARTILAGES, TISSUES
 
-INGEST, SEGMENT, CONFORM, REPORT, BUNDLE = "ingest", "segment", "conform", "report", "bundle"
+INGEST, SEGMENT, CONFORM, ANATOMY, REPORT, BUNDLE = "ingest", "segment", "conform", "anatomy", "report", "bundle"
 
 
 def plan(options: JobOptions) -> list[tuple[str, ...]]:
@@ -43,6 +45,8 @@ def plan(options: JobOptions) -> list[tuple[str, ...]]:
             stages.append(steps)
     if options.blend is not None and set(tissues) >= set(BONES) | set(CARTILAGES):
         stages.append((CONFORM,))
+    if set(tissues) >= set(BONES):
+        stages.append((ANATOMY,))
     stages.append((REPORT,))
     if options.bundle:
         stages.append((BUNDLE,))
@@ -98,11 +102,15 @@ def _run(out_dir: str | os.PathLike, step: str, options: dict, input_path: str |
         return segment_input(input_path, out_dir, JobOptions.from_dict(options))
     if step == CONFORM:
         return conform_bones(out_dir, options)
+    if step == ANATOMY:
+        return place_anatomy(out_dir, options)
     if step == REPORT:
         opts = JobOptions.from_dict(options)
         entries = {t: read_step(out_dir, t)["result"] for t in opts.tissues()}
-        conformed = read_step(out_dir, CONFORM) if CONFORM in sum(plan(opts), ()) else None
-        return write_report(out_dir, entries, conformed and conformed["result"])["summary"]
+        planned = sum(plan(opts), ())
+        conformed = read_step(out_dir, CONFORM)["result"] if CONFORM in planned else None
+        anatomy = read_step(out_dir, ANATOMY)["result"] if ANATOMY in planned else None
+        return write_report(out_dir, entries, conformed, anatomy)["summary"]
     if step == BUNDLE:
         return {"artifacts": len(bundle(out_dir))}
     raise KneeMeshError("bad_option", f"unknown step {step!r}.")

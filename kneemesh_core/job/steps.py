@@ -11,19 +11,21 @@ import time
 import traceback
 from pathlib import Path
 
+import numpy as np
 import pyvista as pv
 
 from kneemesh_core import __version__
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.hexmesh import blend_cartilage, mesh_cartilage
 from kneemesh_core.hexmesh.conform import conform_bone
-from kneemesh_core.io import read_label_map, read_volume, write_image
+from kneemesh_core.io import read_label_map, read_volume, voxel_to_lps, write_image
+from kneemesh_core.io.files import atomic_path
 from kneemesh_core.job.options import INPUT_TYPES, JobOptions
-from kneemesh_core.job.outputs import (JOB_FILE, LABELS_FILE, MESHES_DIR, SURFACES_DIR, read_json, save_mesh,
-                                       write_json)
+from kneemesh_core.job.outputs import (ATTACHMENTS_FIGURE, ATTACHMENTS_FILE, JOB_FILE, LABELS_FILE, MESHES_DIR,
+                                       SURFACES_DIR, read_json, save_mesh, write_json)
 from kneemesh_core.knee import canonicalise, describe, describe_image
 from kneemesh_core.surfaces.tissue import reconstruct_bone
-from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, resolve_convention
+from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, LABEL, resolve_convention
 
 
 def ingest(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: JobOptions) -> dict:
@@ -144,3 +146,37 @@ def conform_bones(out_dir: str | os.PathLike, options: dict) -> dict:
                 save_mesh(surface, f)
         done[bone] = facts
     return done
+
+
+def place_anatomy(out_dir: str | os.PathLike, options: dict) -> dict:
+    """The knee's frames, Grood-Suntay angles and ligament attachment sites on the job's bone meshes
+    (:mod:`kneemesh_core.anatomy`): ``attachments.json`` and ``attachments.png``.  Returns the
+    report's ``anatomy`` entry; never raises (a failure is the entry, and the meshes stay)."""
+    import SimpleITK as sitk
+
+    from kneemesh_core.anatomy.attachments import place
+    from kneemesh_core.anatomy.figure import draw
+
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    try:
+        side = read_json(out / JOB_FILE)["input"]["side"]
+        bones = {b: pv.read(out / MESHES_DIR / f"{b}.vtp") for b in BONES if (out / MESHES_DIR / f"{b}.vtp").exists()}
+        labels = read_label_map(out / LABELS_FILE).image
+        arr = sitk.GetArrayViewFromImage(labels)
+        plates = tuple(voxel_to_lps(labels, np.argwhere(arr == LABEL[t])[:, ::-1])
+                       for t in ("medial_tibial_cartilage", "lateral_tibial_cartilage"))
+        anatomy = place(bones, side, plates)
+        if anatomy.document:
+            write_json(out / ATTACHMENTS_FILE, anatomy.document)
+            with atomic_path(out / ATTACHMENTS_FIGURE) as tmp:
+                draw(anatomy.document, anatomy.bones, anatomy.frames, Path(tmp), Path(out).name)
+            anatomy.report["files"] = [ATTACHMENTS_FILE, ATTACHMENTS_FIGURE]
+        entry = anatomy.report
+    except KneeMeshError as exc:
+        entry = {"status": "failed", "reason": exc.message, "code": exc.code}
+    except Exception as exc:  # the anatomy never sinks the meshes
+        entry = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}", "code": "internal",
+                 "traceback": traceback.format_exc(limit=5)}
+    entry["seconds"] = round(time.perf_counter() - t0, 3)
+    return entry

@@ -30,8 +30,8 @@ class JobCreated(BaseModel):
 
 
 class StepProgress(BaseModel):
-    step: str = Field(description="ingest, segment, a tissue name, conform, report or bundle.")
-    kind: str = Field(description="ingest, segment, bone, cartilage, conform, report or bundle.")
+    step: str = Field(description="ingest, segment, a tissue name, conform, anatomy, report or bundle.")
+    kind: str = Field(description="ingest, segment, bone, cartilage, conform, anatomy, report or bundle.")
     stage: int = Field(description="Steps of one stage run in parallel; stages run in order.")
     state: StepState
     status: str | None = Field(None, description="A tissue's outcome: ok, or failed with `error`.")

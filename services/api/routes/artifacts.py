@@ -40,5 +40,5 @@ def get_artifact(name: str, rec: JobRecord = Depends(deps.own_job), jobs: Jobs =
 
 @router.get("/bundle.zip", response_class=FileResponse)
 def get_bundle(rec: JobRecord = Depends(deps.own_job), jobs: Jobs = Depends(deps.jobs)):
-    """The bundle: labels used, meshes, surfaces and report.json."""
+    """The bundle: labels used, meshes, surfaces, attachments and report.json."""
     return _serve(jobs, rec, BUNDLE_FILE)

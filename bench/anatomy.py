@@ -1,0 +1,174 @@
+"""Anatomy benchmark: frames, attachment sites and side by shape on every real map and its mirror image.
+
+    .venv/bin/python bench/anatomy.py [MAPS_OR_GLOBS ...] [--no-mirror] [--workers 2] [--json F]
+    .venv/bin/python bench/anatomy.py --stability [MAPS_OR_GLOBS ...]
+
+Default maps: every real label map in ../shared/data/real (pymskt, oai_labels, gibbons_imorphics).
+For each knee (and its mirror image through the sagittal plane, with a name that says nothing of the
+side): the side decided without --side and how, the bones meshed as a job does, then the anatomy step
+timed (registration, frames, sites, figure); prints the registration residuals per bone, the sites
+placed and any that break the anatomy rules, the side-by-shape gap, and the time per knee.
+
+``--stability``: how far each site moves between two segmentations of one knee: every label map
+(default: the OAI maps) against the same map with each bone opened, and closed, by one voxel.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import tempfile
+import time
+import warnings
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+from rich.table import Table
+
+from kneemesh.console import console as make_console
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+console = make_console()
+
+
+def one(path: str, mirrored: bool) -> dict:
+    warnings.filterwarnings("ignore")
+    import SimpleITK as sitk
+
+    from kneemesh_core.anatomy.attachments import place
+    from kneemesh_core.anatomy.figure import draw
+    from kneemesh_core.io import Volume, read_label_map, voxel_to_lps
+    from kneemesh_core.knee import canonicalise
+    from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct_bone
+    from kneemesh_core.tissues import LABEL
+
+    vol = read_label_map(path)
+    if mirrored:
+        from conftest import mirror_lr
+
+        vol = Volume(mirror_lr(vol.image), "knee.nrrd")
+    vol.source = "knee.nrrd"
+    t0 = time.perf_counter()
+    try:
+        knee = canonicalise(vol)
+    except Exception as exc:  # noqa: BLE001 - the benchmark records every failure
+        return {"knee": Path(path).name, "mirrored": mirrored, "error": f"{type(exc).__name__}: {exc}"}
+    ingest_s = time.perf_counter() - t0
+    bones = {b: reconstruct_bone(knee.labels, b, SurfaceOptions())[0] for b in ("femur", "tibia", "patella")}
+    arr = sitk.GetArrayViewFromImage(knee.labels)
+    t0 = time.perf_counter()
+    plates = tuple(voxel_to_lps(knee.labels, np.argwhere(arr == LABEL[t])[:, ::-1])
+                   for t in ("medial_tibial_cartilage", "lateral_tibial_cartilage"))
+    anatomy = place(bones, knee.side, plates)
+    with tempfile.TemporaryDirectory() as tmp:
+        draw(anatomy.document, anatomy.bones, anatomy.frames, Path(tmp) / "a.png")
+    seconds = time.perf_counter() - t0
+    r = anatomy.report
+    return {"knee": Path(path).name, "mirrored": mirrored, "side": knee.side, "side_method": knee.side_method,
+            "shape": knee.side_evidence.get("shape") or r["shape_side"], "residuals": r["residuals_mm"],
+            "sites": r["sites_placed"], "violations": r["site_rule_violations"], "status": r["status"],
+            "reasons": r["reasons"], "angles": r["angles_deg"], "seconds": seconds, "ingest_seconds": ingest_s}
+
+
+def stability(path: str) -> dict:
+    """Site displacements (mm) between a knee and its bones opened, and closed, by one voxel."""
+    warnings.filterwarnings("ignore")
+    import SimpleITK as sitk
+    from scipy import ndimage as ndi
+
+    from kneemesh_core.anatomy.attachments import place
+    from kneemesh_core.knee import load_knee
+    from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct_bone
+    from kneemesh_core.tissues import LABEL
+
+    knee = load_knee(path)
+
+    def sites(labels) -> np.ndarray:
+        bones = {b: reconstruct_bone(labels, b, SurfaceOptions())[0] for b in ("femur", "tibia", "patella")}
+        doc = place(bones, knee.side).document
+        return np.array([e["lps_mm"] for f in doc["fibres"] for e in f["ends"]], float)
+
+    base = sites(knee.labels)
+    out = {"knee": Path(path).name}
+    for name, op in (("opened", ndi.binary_opening), ("closed", ndi.binary_closing)):
+        arr = sitk.GetArrayFromImage(knee.labels)
+        for b in ("femur", "tibia", "patella"):
+            mask = arr == LABEL[b]
+            changed = op(mask)
+            arr[mask & ~changed] = 0
+            arr[changed & (arr == 0)] = LABEL[b]
+        im = sitk.GetImageFromArray(arr)
+        im.CopyInformation(knee.labels)
+        out[name] = np.linalg.norm(sites(im) - base, axis=1).tolist()
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("maps", nargs="*")
+    ap.add_argument("--no-mirror", action="store_true")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--stability", action="store_true", help="site movement between two segmentations of one knee")
+    args = ap.parse_args()
+    if args.stability:
+        maps = [p for m in args.maps for p in sorted(glob.glob(m))] or [str(p) for p in sorted((REAL / "oai_labels").glob("*.nii.gz"))]
+        with ProcessPoolExecutor(args.workers) as pool:
+            rows = list(pool.map(stability, maps))
+        for key in ("opened", "closed"):
+            d = np.concatenate([r[key] for r in rows])
+            console.print(f"sites moved, bones {key} by one voxel ({len(rows)} knees, {len(d)} sites): median {np.median(d):.2f} mm, "
+                          f"p95 {np.percentile(d, 95):.2f} mm, max {d.max():.2f} mm; per knee median of medians "
+                          f"{np.median([np.median(r[key]) for r in rows]):.2f} mm")
+        return
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # mirror_lr
+    maps = [p for m in args.maps for p in sorted(glob.glob(m))] or [
+        str(p) for p in sorted((REAL / "pymskt" / "labels").glob("*.nrrd")) + sorted((REAL / "oai_labels").glob("*.nii.gz"))
+        + sorted((REAL / "gibbons_imorphics" / "labels").glob("*.nii.gz"))]
+    jobs = [(m, False) for m in maps] + ([] if args.no_mirror else [(m, True) for m in maps])
+    rows = []
+    with ProcessPoolExecutor(args.workers) as pool:
+        futures = [pool.submit(one, m, mir) for m, mir in jobs]
+        for fut in as_completed(futures):
+            r = fut.result()
+            rows.append(r)
+            tag = f"{r['knee']}{' (mirror)' if r['mirrored'] else ''}"
+            if "error" in r:
+                console.print(f"[{len(rows)}/{len(jobs)}] {tag}: [red]{r['error']}[/]", highlight=False)
+                continue
+            console.print(f"[{len(rows)}/{len(jobs)}] {tag}: {r['side']} by {r['side_method']}, residuals {r['residuals']}, "
+                          f"{r['sites']} sites, {len(r['violations'])} off anatomy, {r['seconds']:.2f} s", highlight=False)
+            if args.json:
+                args.json.write_text(json.dumps(rows, indent=1, default=float))
+    ok = [r for r in rows if "error" not in r]
+    table = Table(title=f"anatomy on {len(ok)} knees ({len(maps)} maps{'' if args.no_mirror else ' and their mirror images'})")
+    for col in ("bone", "residual mm: median", "p90", "max"):
+        table.add_column(col)
+    for bone in ("femur", "tibia", "patella"):
+        v = np.array([r["residuals"][bone] for r in ok if bone in r["residuals"]])
+        table.add_row(bone, f"{np.median(v):.3f}", f"{np.percentile(v, 90):.3f}", f"{v.max():.3f}")
+    console.print(table)
+    expected = {}
+    for r in ok:  # a knee's mirror image must be the other side
+        expected.setdefault(r["knee"], {})[r["mirrored"]] = r["side"]
+    flipped = sum(1 for v in expected.values() if len(v) == 2 and v[True] != v[False])
+    gaps = [r["shape"]["relative_gap"] for r in ok if r["shape"].get("relative_gap") is not None]
+    secs = np.array([r["seconds"] for r in ok])
+    console.print(f"errors: {len(rows) - len(ok)}; all 152 sites placed: {sum(r['sites'] == 152 for r in ok)}/{len(ok)}; "
+                  f"knees with a site off its anatomy: {sum(bool(r['violations']) for r in ok)}; status ok: "
+                  f"{sum(r['status'] == 'ok' for r in ok)}/{len(ok)}; mirror images decided the other side: {flipped}/"
+                  f"{sum(len(v) == 2 for v in expected.values())}; shape gap min {min(gaps):.3f} median {np.median(gaps):.3f}; "
+                  f"shape agrees with the side: {sum(r['shape'].get('side') == r['side'] for r in ok)}/{len(ok)}; "
+                  f"anatomy step (one process) median {np.median(secs):.2f} s, max {secs.max():.2f} s; "
+                  f"side decision at ingest median {np.median([r['ingest_seconds'] for r in ok]):.2f} s")
+    for r in ok:
+        if r["violations"] or r["status"] != "ok":
+            console.print(f"{r['knee']}{' (mirror)' if r['mirrored'] else ''}: {'; '.join(r['reasons'])}", highlight=False)
+
+
+if __name__ == "__main__":
+    main()

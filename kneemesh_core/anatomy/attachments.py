@@ -1,0 +1,173 @@
+"""Every ligament and tendon fibre end of the template on the subject's bones, with the knee's frames.
+
+For each bone the template is registered onto the job's bone mesh (:mod:`.register`); each fibre
+end goes through its bone's registration and onto the subject's bone surface: its position is
+the nearest point of the surface, its ``node`` the nearest vertex of ``meshes/<bone>.vtp``.  Ends
+that Lenhart's model puts on the fibula (LCL, popliteofibular ligament) move with the tibia and
+stay on the registered template fibula (the job meshes no fibula): their ``node`` is null.
+Slack lengths scale with the mean registration scale of the fibre's two bones.
+
+A registration whose residual is implausible (the bone is not what the template expects: a
+cropped or broken segmentation, a foreign object) is reported, and its sites are flagged.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pyvista as pv
+from scipy.spatial import cKDTree
+
+from kneemesh_core.anatomy import template as tmpl
+from kneemesh_core.anatomy.frames import Frame, coarse_axes, femur_frame, grood_suntay, patella_frame, tibia_frame
+from kneemesh_core.anatomy.register import Registration, register, shape_verdict
+
+#: A registration residual (trimmed RMS, mm) above this is implausible for a bone of a knee: on the
+#: 126 real maps here and their mirror images the largest were femur 1.3, tibia 1.6, patella 1.8 mm
+#: (99th percentiles 1.2, 1.5, 1.7); these leave about 40 % of room above them.
+MAX_PLAUSIBLE_RMS_MM = {"femur": 1.8, "tibia": 2.2, "patella": 2.5}
+
+
+@dataclass
+class Anatomy:
+    """What :func:`place` found: the JSON document and what the report needs."""
+
+    document: dict  # attachments.json
+    report: dict  # the report's anatomy entry
+    frames: dict[str, Frame]
+    bones: dict[str, pv.PolyData]
+
+
+def place(bones: dict[str, pv.PolyData], side: str, plates: tuple[np.ndarray, np.ndarray] | None = None) -> Anatomy:
+    """Frames, angles and attachment sites of a knee.
+
+    Parameters
+    ----------
+    bones : the job's bone meshes (``femur``, ``tibia``, ``patella``; LPS mm); a missing bone leaves
+        its sites unplaced, with the reason.
+    side : ``left`` or ``right`` (left knees take the mirrored template).
+    plates : points (N, 3) of the medial and lateral tibial cartilage, for the plateau centres.
+    """
+    t0 = time.perf_counter()
+    template = tmpl.load()
+    pts = {b: np.asarray(m.points, float) for b, m in bones.items() if m is not None and m.n_points}
+    unplaced_bones = {b: f"no {b} mesh" for b in tmpl.BONES if b not in pts}
+    if "femur" not in pts or "tibia" not in pts:
+        return Anatomy({}, {"status": "failed", "reason": "the femur and the tibia are both needed for the knee's frames",
+                            "code": "bone_missing"}, {}, bones)
+    axes = coarse_axes(pts["femur"], pts["tibia"], pts.get("patella"))
+    mirrored = side == "left"
+    regs: dict[str, Registration] = {b: register(b, template.points(b), pts[b], axes, mirrored) for b in pts}
+    frames = {"femur": femur_frame(pts["femur"], axes, side), "tibia": tibia_frame(pts["tibia"], axes, side, plates)}
+    if "patella" in pts:
+        frames["patella"] = patella_frame(pts["patella"], axes, side, frames["femur"])
+    # the shape check: the mirror image of the template fitted to the same bones
+    fit = sum(regs[b].rms_similarity_mm for b in ("tibia", "femur"))
+    mirror = sum(register(b, template.points(b), pts[b], axes, not mirrored, refine=False).rms_mm
+                 for b in ("tibia", "femur"))
+    shape = shape_verdict(*((mirror, fit) if mirrored else (fit, mirror)))
+
+    trees = {b: cKDTree(p) for b, p in pts.items()}
+    fibres, unplaced = [], []
+    for fibre in template.fibres:
+        ends = []
+        for end in fibre.ends:
+            if end.bone not in regs:
+                unplaced.append({"fibre": fibre.name, "bone": end.bone, "reason": unplaced_bones[end.bone]})
+                ends.append({"bone": end.bone, "node": None, "lps_mm": None})
+                continue
+            mapped = regs[end.bone].place(end.point[None])[0]
+            entry = {"bone": end.bone}
+            if end.surface == "fibula":
+                entry.update(node=None, lps_mm=_round(mapped), on="fibula (template, moved with the tibia)")
+            else:
+                _, closest = bones[end.bone].find_closest_cell(mapped[None], return_closest_point=True)
+                entry.update(node=int(trees[end.bone].query(closest[0])[1]), lps_mm=_round(closest[0]),
+                             snapped_mm=round(float(np.linalg.norm(closest[0] - mapped)), 3))
+            ends.append(entry)
+        scales = [regs[e.bone].similarity.scale for e in fibre.ends if e.bone in regs]
+        scale = float(np.mean(scales)) if scales else 1.0
+        item = {"name": fibre.name, "bundle": fibre.bundle, "stiffness_n": fibre.stiffness_n,
+                "slack_length_mm": round(fibre.slack_length_mm * scale, 3),
+                "template_slack_length_mm": fibre.slack_length_mm, "ends": ends}
+        if all(e["lps_mm"] is not None for e in ends):
+            item["length_mm"] = round(float(np.linalg.norm(np.subtract(ends[0]["lps_mm"], ends[1]["lps_mm"]))), 3)
+        if fibre.note:
+            item["note"] = fibre.note
+        fibres.append(item)
+
+    residuals = {b: round(r.rms_mm, 3) for b, r in regs.items()}
+    implausible = {b: r for b, r in residuals.items() if r > MAX_PLAUSIBLE_RMS_MM[b]}
+    reasons = [f"{b} registration residual {r} mm is implausible (> {MAX_PLAUSIBLE_RMS_MM[b]} mm): "
+               "its sites are unreliable" for b, r in implausible.items()]
+    for bone, why in unplaced_bones.items():
+        n = sum(u["bone"] == bone for u in unplaced)
+        reasons.append(f"{n} sites on the {bone} not placed: {why}")
+    if shape.get("side") and shape["side"] != side:
+        reasons.append(f"the bones' shape fits a {shape['side']} knee better (residuals right {shape['rms_right_mm']} mm, "
+                       f"left {shape['rms_left_mm']} mm) than the {side} knee this job was given")
+    angles = grood_suntay(frames["femur"], frames["tibia"])
+    violations = rule_violations(fibres, frames)
+    reasons += [f"site off its anatomy: {v}" for v in violations]
+    document = {
+        "template": {**template.source, "mirrored_for_left_knee": mirrored},
+        "side": side,
+        "frames": {b: f.to_dict() for b, f in frames.items()},
+        "angles_deg": angles,
+        "residuals_mm": residuals,
+        "registration": {b: r.facts() for b, r in regs.items()},
+        "shape_side": shape,
+        "fibres": fibres,
+        "unplaced": unplaced,
+    }
+    report = {"status": "review" if reasons else "ok", "reasons": reasons, "residuals_mm": residuals,
+              "site_rule_violations": violations,
+              "angles_deg": angles, "fibres": len(fibres),
+              "sites_placed": sum(e["lps_mm"] is not None for f in fibres for e in f["ends"]),
+              "unplaced": unplaced, "shape_side": shape, "seconds": round(time.perf_counter() - t0, 3)}
+    return Anatomy(document, report, frames, bones)
+
+
+def _round(p: np.ndarray) -> list[float]:
+    return [round(float(x), 3) for x in p]
+
+
+def _local(frame: Frame, p) -> dict[str, float]:
+    v = np.asarray(p, float) - frame.origin
+    return {"lateral": float(v @ frame.lateral), "anterior": float(v @ frame.anterior), "proximal": float(v @ frame.proximal)}
+
+
+def rule_violations(fibres: list[dict], frames: dict[str, Frame]) -> list[str]:
+    """Where placed sites break what anatomy says, in the knee's own frames (so for either side):
+    MCL ends medial, LCL and popliteofibular ends lateral, the patellar tendon from the patella's
+    distal half to the tibial tuberosity (anterior, below the plateau), ACL femoral ends on the
+    lateral condyle's notch wall and PCL ones on the medial's, femoral ends above tibial ones.
+    Each violation names the fibre and the coordinate (mm) that breaks the rule."""
+    out = []
+    for f in fibres:
+        ends = {e["bone"]: e["lps_mm"] for e in f["ends"] if e["lps_mm"] is not None}
+        loc = {b: _local(frames[b], p) for b, p in ends.items() if b in frames}
+        rules = []
+        b = f["bundle"]
+        if b in ("MCLs", "MCLd", "MCLp"):
+            rules += [("femur", "lateral", "<", -15.0), ("tibia", "lateral", "<", -10.0)]
+        if b in ("LCL", "PFL"):
+            rules += [("femur", "lateral", ">", 15.0), ("tibia", "lateral", ">", 15.0)]
+        if b == "PT":
+            rules += [("patella", "proximal", "<", 0.0), ("tibia", "anterior", ">", 15.0), ("tibia", "proximal", "<", -10.0)]
+        if b in ("ACLam", "ACLpl"):
+            rules += [("femur", "lateral", ">", 0.0), ("femur", "lateral", "<", 22.0)]
+        if b in ("PCLal", "PCLpm"):
+            rules += [("femur", "lateral", "<", 0.0), ("femur", "lateral", ">", -22.0)]
+        for bone, axis, op, limit in rules:
+            if bone in loc:
+                v = loc[bone][axis]
+                if not (v < limit if op == "<" else v > limit):
+                    out.append(f"{f['name']} {bone} end at {axis} {v:.1f} mm (expected {op} {limit:g})")
+        if "femur" in ends and "tibia" in ends and "tibia" in frames:
+            above = float((np.asarray(ends["femur"]) - ends["tibia"]) @ frames["tibia"].proximal)
+            if above <= 0:
+                out.append(f"{f['name']} femoral end {-above:.1f} mm below its tibial end")
+    return out
