@@ -1,6 +1,6 @@
 # One image for the API and the workers: `kneemesh serve` or `kneemesh worker`.
 FROM python:3.11-slim
-RUN apt-get update && apt-get install -y --no-install-recommends libgl1 libxrender1 libglib2.0-0 \
+RUN apt-get update && apt-get install -y --no-install-recommends libgl1 libxrender1 libglib2.0-0 calculix-ccx \
     && rm -rf /var/lib/apt/lists/*
 WORKDIR /app
 COPY pyproject.toml README.md ./

@@ -43,6 +43,8 @@ MESH_FLAGS = {
     "layers": (Optional[int], job_option("layers", "--layers")),
     "blend": (Optional[bool], job_option("blend", "--blend/--no-blend")),
     "blend_angle": (Optional[float], job_option("blend_angle", "--blend-angle")),
+    "simulate": (Optional[str], job_option("simulate", "--simulate")),
+    "fe_cartilage": (Optional[str], job_option("fe_cartilage", "--fe-cartilage")),
 }
 
 
@@ -182,9 +184,29 @@ def _run_job(input_path: Path, out_dir: Path, request: JobRequest, workers: int)
             out.print(f"anatomy: {a['status']}; {a['sites_placed']} attachment sites of {a['fibres']} fibres; registration "
                       f"residuals {res} mm; flexion {ang['flexion']:.1f}, varus {ang['varus']:.1f}, internal rotation "
                       f"{ang['internal_rotation']:.1f} deg" + "".join(f"\n  review: {r}" for r in a["reasons"]), highlight=False)
+    if "fe" in report:
+        fe = report["fe"]
+        out.print(f"decks: {', '.join(fe['files'][:3])}" if fe["status"] == "ok" else f"decks: [red]failed[/]: {fe['reason']}",
+                  highlight=False)
+    if "simulation" in report:
+        _print_simulation(report["simulation"])
     out.print(f"report: {Path(out_dir) / 'report.json'}")
     if report["summary"]["failed"]:
         raise typer.Exit(1)
+
+
+def _print_simulation(sim: dict) -> None:
+    if sim.get("status") == "failed" and "completed" not in sim:
+        out.print(f"simulation: [red]failed[/]: {sim['reason']}", highlight=False)
+        return
+    final = sim["final"]
+    line = (f"simulation ({sim['kind']}, {sim['solver']}, {sim['solver_seconds']:.0f} s): "
+            f"{'completed' if sim['completed'] else '[red]stopped[/]: ' + str(sim['reason'])} at "
+            f"{sim['reached_flexion_deg']:.1f} of {sim['target_flexion_deg']:.0f} deg")
+    if final.get("medial"):
+        line += "; " + ", ".join(f"{k} {final[k]['force_n']:.0f} N on {final[k]['area_mm2']:.0f} mm^2, peak "
+                                 f"{final[k]['peak_pressure_mpa']:.1f} MPa" for k in ("medial", "lateral", "patellofemoral"))
+    out.print(line, highlight=False)
 
 
 @app.command("run")
@@ -201,6 +223,27 @@ def run_image(
     with _clear_errors():
         request = JobRequest.build(input_type="image", model=str(model) if model else None, side=side, **mesh_flags)
     _run_job(image_file, out_dir, request, workers)
+
+
+@app.command()
+def simulate(
+    job_dir: Path = typer.Argument(..., metavar="DIR", help="A job folder written by `kneemesh mesh` or `kneemesh run`."),
+    to: Optional[float] = typer.Option(None, "--to", min=1.0, max=120.0, help="Flexion to reach, deg (default: the deck's 90)."),
+    smoke: bool = typer.Option(False, "--smoke", help="A few increments to 15 deg: a quick proof that the deck runs."),
+    timeout: float = typer.Option(1800.0, "--timeout", min=10.0, help="Stop ccx after this many seconds."),
+):
+    """Run CalculiX on a job's decks (fe/knee_ccx.inp): contact forces, areas and pressures over flexion
+    in fe/results.json and fe/contact.png (fe/smoke/ for --smoke)."""
+    from kneemesh_core.fe.run import simulate as run_simulation
+
+    with _clear_errors():
+        r = run_simulation(job_dir, flexion_deg=to, smoke=smoke, timeout_s=timeout)
+    last = r["increments"][-1] if r["increments"] else {}
+    _print_simulation({"kind": "smoke" if smoke else "flexion", "solver": r["solver"], "solver_seconds": r["seconds"],
+                       "completed": r["completed"], "reason": r["reason"], "reached_flexion_deg": r["reached_flexion_deg"],
+                       "target_flexion_deg": r["target_flexion_deg"], "final": last})
+    if not r["completed"]:
+        raise typer.Exit(1)
 
 
 @app.command()

@@ -96,6 +96,7 @@ def test_label_map_job_runs_every_tissue_as_its_own_celery_task(stack):
     report = json.loads(bundle.read("report.json"))
     assert report["summary"]["failed"] == [] and report["input"]["side"] == "right"
     assert report["anatomy"]["sites_placed"] == 152 and "attachments.json" in members
+    assert {"fe/knee_model.inp", "fe/knee_ccx.inp", "fe/knee_abaqus.inp"} <= members and report["fe"]["status"] == "ok"
     hexes = pv.read(stack.data / "jobs" / job["id"] / "out" / "meshes" / "medial_tibial_cartilage.vtu")
     assert hexes.n_cells > 500 and set(np.unique(hexes.celltypes)) == {pv.CellType.HEXAHEDRON}
     blend = report["tissues"]["medial_tibial_cartilage"]["blend"]  # fused onto the bone the job meshed first

@@ -8,14 +8,15 @@ import os
 
 import pytest
 
-from kneemesh_core.job import ANATOMY, BUNDLE, CONFORM, INGEST, REPORT, JobOptions, bundle, plan
+from kneemesh_core.job import ANATOMY, BUNDLE, CONFORM, DECKS, INGEST, REPORT, SIMULATE, JobOptions, bundle, plan
 from services.jobs import Jobs
 from services.store import FileStore
 
 
 def test_plan_stages_bones_before_cartilage():
     stages = plan(JobOptions(bundle=True))
-    assert stages[0] == (INGEST,) and stages[-4:] == [(CONFORM,), (ANATOMY,), (REPORT,), (BUNDLE,)]
+    assert stages[0] == (INGEST,) and stages[-5:] == [(CONFORM,), (ANATOMY,), (DECKS,), (REPORT,), (BUNDLE,)]
+    assert plan(JobOptions(simulate="smoke"))[-3:] == [(DECKS,), (SIMULATE,), (REPORT,)]
     assert set(stages[1]) == {"femur", "tibia", "patella"} and stages[1][0] == "femur"
     assert len(stages[2]) == 4 and stages[2][0] == "femoral_cartilage"
     assert plan(JobOptions(only="bones")) == [(INGEST,), ("femur", "tibia", "patella"), (ANATOMY,), (REPORT,)]

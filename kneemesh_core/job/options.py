@@ -35,6 +35,8 @@ class JobOptions:
     only: str = "all"
     stl: bool = False
     bundle: bool = False
+    simulate: str = "none"  # or "smoke" (to 15 deg) or "full" (to 90 deg): a CalculiX run of the decks
+    fe_cartilage: str = "rigid"  # or "deformable": the cartilage of the decks
     surface: SurfaceOptions = SurfaceOptions()
     hex: HexOptions = HexOptions()
     blend: BlendOptions | None = BlendOptions()  # None: keep the step at the cartilage edge
@@ -82,6 +84,10 @@ class JobRequest(BaseModel):
                                description="Angle at which the blended cartilage edge meets the bone, deg.")
     bone_edge: float = Field(3.0, ge=0.5, le=10.0, allow_inf_nan=False, description="Target bone triangle edge, mm.")
     stl: bool = Field(False, description="Also write the bone shells as .stl.")
+    simulate: Literal["none", "smoke", "full"] = Field(
+        "none", description="Run the CalculiX deck: smoke (to 15 deg of flexion) or full (to 90 deg); none: write the decks only.")
+    fe_cartilage: Literal["rigid", "deformable"] = Field(
+        "rigid", description="Cartilage in the decks: rigid (the paper's choice; contact stiffness from its layers) or deformable.")
 
     @classmethod
     def build(cls, **given) -> "JobRequest":
@@ -97,7 +103,7 @@ class JobRequest(BaseModel):
         """The pipeline's options for this request; ``bundle`` zips the outputs (the service does)."""
         return JobOptions(
             input_type=self.input_type, model=self.model, preset=self.preset, labels=self.labels, side=self.side,
-            only=self.only, stl=self.stl, bundle=bundle,
+            only=self.only, stl=self.stl, bundle=bundle, simulate=self.simulate, fe_cartilage=self.fe_cartilage,
             surface=SurfaceOptions(bone_edge_mm=self.bone_edge),
             hex=HexOptions(element_size=self.element_size, layers=self.layers),
             blend=BlendOptions(angle_deg=self.blend_angle) if self.blend else None)

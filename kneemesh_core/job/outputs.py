@@ -28,8 +28,10 @@ MANIFEST_FILE = "artifacts.json"
 STEPS_DIR = "steps"
 MESHES_DIR = "meshes"
 SURFACES_DIR = "surfaces"
-#: What the bundle carries: labels used, meshes, surfaces, attachment sites and frames, the report.
-BUNDLED = (LABELS_FILE, JOB_FILE, REPORT_FILE, ATTACHMENTS_FILE, ATTACHMENTS_FIGURE, f"{MESHES_DIR}/*", f"{SURFACES_DIR}/*")
+#: What the bundle carries: labels used, meshes, surfaces, attachment sites and frames, the decks and
+#: any simulation's results (not the solver's raw output), the report.
+BUNDLED = (LABELS_FILE, JOB_FILE, REPORT_FILE, ATTACHMENTS_FILE, ATTACHMENTS_FIGURE, f"{MESHES_DIR}/*", f"{SURFACES_DIR}/*",
+           *(f"fe/{sub}*.{ext}" for sub in ("", "smoke/") for ext in ("inp", "json", "png")))
 
 
 def utc_now() -> str:
@@ -66,7 +68,7 @@ def write_step(out_dir: str | os.PathLike, step: str, record: dict) -> None:
 
 
 def write_report(out_dir: str | os.PathLike, entries: dict[str, dict], conformed: dict | None = None,
-                 anatomy: dict | None = None) -> dict:
+                 anatomy: dict | None = None, fe: dict | None = None, simulation: dict | None = None) -> dict:
     """``report.json`` from ``job.json``, the tissue entries, what the conform step did (each
     bone's entry gains ``conformed``, each of its cartilages' ``bone_conform``) and the anatomy
     step's entry (``anatomy``: residuals, angles, unplaced sites, status and reasons)."""
@@ -84,6 +86,8 @@ def write_report(out_dir: str | os.PathLike, entries: dict[str, dict], conformed
         **job,
         "tissues": {t: entries[t] for t in TISSUES if t in entries},
         **({"anatomy": anatomy} if anatomy is not None else {}),
+        **({"fe": fe} if fe is not None else {}),
+        **({"simulation": simulation} if simulation is not None else {}),
         "summary": {
             "ok": sorted(t for t, e in entries.items() if e["status"] == "ok"),
             "failed": sorted(t for t, e in entries.items() if e["status"] != "ok"),

@@ -9,7 +9,8 @@ other, so a runner may run them in parallel:
 3. ``conform`` (with blending, when bones and cartilages are both meshed) lets each bone
    give way where a fused cartilage still dips into it;
 4. ``anatomy`` (when the bones are meshed) places the knee's frames and the ligament and
-   tendon attachment sites on the bone meshes;
+   tendon attachment sites on the bone meshes; ``decks`` (when every tissue is meshed) writes the
+   Abaqus and CalculiX decks; ``simulate`` (on request) runs CalculiX on them;
 5. ``report`` gathers the entries into ``report.json``;
 6. ``bundle`` (optional) zips the outputs and lists every artifact.
 
@@ -29,10 +30,12 @@ from typing import Iterable
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.job.options import JobOptions
 from kneemesh_core.job.outputs import bundle, read_step, utc_now, write_report, write_step
-from kneemesh_core.job.steps import conform_bones, ingest, mesh_tissue, place_anatomy, segment_input
+from kneemesh_core.job.steps import (conform_bones, ingest, mesh_tissue, place_anatomy, run_simulation, segment_input,
+                                    write_decks)
 from kneemesh_core.tissues import BONES, CARTILAGES, TISSUES
 
-INGEST, SEGMENT, CONFORM, ANATOMY, REPORT, BUNDLE = "ingest", "segment", "conform", "anatomy", "report", "bundle"
+INGEST, SEGMENT, CONFORM, ANATOMY, DECKS, SIMULATE, REPORT, BUNDLE = (
+    "ingest", "segment", "conform", "anatomy", "decks", "simulate", "report", "bundle")
 
 
 def plan(options: JobOptions) -> list[tuple[str, ...]]:
@@ -47,6 +50,10 @@ def plan(options: JobOptions) -> list[tuple[str, ...]]:
         stages.append((CONFORM,))
     if set(tissues) >= set(BONES):
         stages.append((ANATOMY,))
+    if set(tissues) == set(TISSUES):
+        stages.append((DECKS,))
+        if options.simulate != "none":
+            stages.append((SIMULATE,))
     stages.append((REPORT,))
     if options.bundle:
         stages.append((BUNDLE,))
@@ -104,13 +111,18 @@ def _run(out_dir: str | os.PathLike, step: str, options: dict, input_path: str |
         return conform_bones(out_dir, options)
     if step == ANATOMY:
         return place_anatomy(out_dir, options)
+    if step == DECKS:
+        return write_decks(out_dir, options)
+    if step == SIMULATE:
+        return run_simulation(out_dir, options)
     if step == REPORT:
         opts = JobOptions.from_dict(options)
         entries = {t: read_step(out_dir, t)["result"] for t in opts.tissues()}
         planned = sum(plan(opts), ())
         conformed = read_step(out_dir, CONFORM)["result"] if CONFORM in planned else None
-        anatomy = read_step(out_dir, ANATOMY)["result"] if ANATOMY in planned else None
-        return write_report(out_dir, entries, conformed, anatomy)["summary"]
+        anatomy, fe, simulation = (read_step(out_dir, s)["result"] if s in planned else None
+                                   for s in (ANATOMY, DECKS, SIMULATE))
+        return write_report(out_dir, entries, conformed, anatomy, fe, simulation)["summary"]
     if step == BUNDLE:
         return {"artifacts": len(bundle(out_dir))}
     raise KneeMeshError("bad_option", f"unknown step {step!r}.")

@@ -157,9 +157,9 @@ def place_anatomy(out_dir: str | os.PathLike, options: dict) -> dict:
     from kneemesh_core.anatomy.attachments import place
     from kneemesh_core.anatomy.figure import draw
 
-    t0 = time.perf_counter()
     out = Path(out_dir)
-    try:
+
+    def work() -> dict:
         side = read_json(out / JOB_FILE)["input"]["side"]
         bones = {b: pv.read(out / MESHES_DIR / f"{b}.vtp") for b in BONES if (out / MESHES_DIR / f"{b}.vtp").exists()}
         labels = read_label_map(out / LABELS_FILE).image
@@ -170,13 +170,51 @@ def place_anatomy(out_dir: str | os.PathLike, options: dict) -> dict:
         if anatomy.document:
             write_json(out / ATTACHMENTS_FILE, anatomy.document)
             with atomic_path(out / ATTACHMENTS_FIGURE) as tmp:
-                draw(anatomy.document, anatomy.bones, anatomy.frames, Path(tmp), Path(out).name)
+                draw(anatomy.document, anatomy.bones, anatomy.frames, Path(tmp), out.name)
             anatomy.report["files"] = [ATTACHMENTS_FILE, ATTACHMENTS_FIGURE]
-        entry = anatomy.report
+        return anatomy.report
+
+    return _guarded(work)
+
+
+def _guarded(work) -> dict:
+    """Run ``work()`` for a step whose failure must not sink the knee: its entry, with the reason."""
+    t0 = time.perf_counter()
+    try:
+        entry = work()
     except KneeMeshError as exc:
         entry = {"status": "failed", "reason": exc.message, "code": exc.code}
-    except Exception as exc:  # the anatomy never sinks the meshes
+    except Exception as exc:  # the meshes stay whatever the decks or the solver do
         entry = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}", "code": "internal",
                  "traceback": traceback.format_exc(limit=5)}
     entry["seconds"] = round(time.perf_counter() - t0, 3)
     return entry
+
+
+def write_decks(out_dir: str | os.PathLike, options: dict) -> dict:
+    """The Abaqus and CalculiX decks of the knee in ``fe/`` (:mod:`kneemesh_core.fe`); never raises."""
+    from kneemesh_core.fe.model import LoadCase
+    from kneemesh_core.fe.run import write_decks as write
+
+    opts = JobOptions.from_dict(options)
+    return _guarded(lambda: {"status": "ok", **write(Path(out_dir), LoadCase(cartilage=opts.fe_cartilage))})
+
+
+def run_simulation(out_dir: str | os.PathLike, options: dict) -> dict:
+    """CalculiX on the decks (smoke: to 15 deg; full: to 90 deg); ``fe/results.json`` and
+    ``fe/contact.png``.  Never raises: a failed simulation is its entry, the meshes and decks stay."""
+    from kneemesh_core.fe.model import LoadCase
+    from kneemesh_core.fe.run import simulate
+
+    opts = JobOptions.from_dict(options)
+
+    def work() -> dict:
+        r = simulate(Path(out_dir), smoke=opts.simulate == "smoke", load=LoadCase(cartilage=opts.fe_cartilage))
+        last = r["increments"][-1] if r["increments"] else {}
+        return {"status": "ok" if r["completed"] else "failed", "kind": opts.simulate, "completed": r["completed"],
+                "reason": r["reason"], "solver": r["solver"], "solver_seconds": r["seconds"],
+                "reached_flexion_deg": r["reached_flexion_deg"], "target_flexion_deg": r["target_flexion_deg"],
+                "final": {k: last.get(k) for k in ("medial", "lateral", "patellofemoral", "balance_error")},
+                "files": [f"fe/{'smoke/' if opts.simulate == 'smoke' else ''}{f}" for f in ("results.json", "contact.png")]}
+
+    return _guarded(work)

@@ -1,0 +1,288 @@
+"""The knee model a deck describes, in the deck's frame.
+
+**Frame.** Millimetres, origin at the femoral frame's origin (the middle of the flexion axis);
+X the flexion axis pointing to the patient's right, Y anterior, Z superior (along the femur's
+shaft).  The same right-handed frame for a left and a right knee, so a positive rotation about
+X is flexion of the femur (its shaft turning posteriorly) on both.  ``frame`` holds the LPS
+origin and axes to map results back.
+
+**Bodies.** Femur, tibia and patella are rigid bodies, each with its bone surface and its
+cartilage: the femoral cartilage with the femur; the medial and lateral tibial cartilage with
+the tibia; the patellar cartilage with the patella.  Rigid cartilage (the paper's choice) keeps
+only the articular layer of hexahedra (deeper layers move with the bone and change nothing; the
+bone-side surface is then the articular layer's deep face), deformable cartilage every layer.
+
+**Contact.** Linear pressure-overclosure between articular surfaces: medial and lateral tibial
+on femoral, patellar on femoral.  The stiffness stands for the two cartilage layers it replaces,
+springs in series: K = E / (h_1 + h_2), E the cartilage's modulus and h the median thickness of
+each cartilage (N/mm^3).
+
+**Ligaments.** Each fibre of ``attachments.json`` is a tension-only nonlinear spring with the
+Blankevoort (1991) law as OpenSim implements it (strain e = L/L0 - 1; 0 for e <= 0,
+k e^2 / (2 e_t) up to e_t = 0.06, k (e - e_t/2) beyond) and a slope of 1e-3 k/L0 in compression
+so that a slack fibre leaves no singular tangent.
+
+**Seating.** The image pose may start with the cartilages apart or overlapping (0.3-0.6 mm on
+real OA knees); :func:`seat` moves the femur along Z until its cartilage just touches the tibial
+cartilage and the patella along its anterior axis until it just touches the femoral cartilage,
+and reports the overlaps it removed.
+
+**Loads.** The tibia fixed; a compressive joint load on the femur along -Z; a quadriceps force
+on the patella from a point up the femoral shaft that is drawn up first (the force rises to its
+value) and then turns with the femur's flexion; weak springs on the free degrees of freedom keep
+the solve regular before contact closes (their forces are part of the equilibrium check).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+
+from kneemesh_core.errors import KneeMeshError
+from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES
+
+#: Cartilage modulus behind the contact stiffness, MPa (instantaneous compressive modulus of
+#: human knee cartilage is 5-15 MPa; the paper's rigid-cartilage models use linear laws of this kind).
+CARTILAGE_MODULUS_MPA = 10.0
+#: Blankevoort transition strain.
+TRANSITION_STRAIN = 0.06
+#: The contact pairs: name -> (slave cartilage, master cartilage).
+PAIRS = {"medial": ("medial_tibial_cartilage", "femoral_cartilage"),
+         "lateral": ("lateral_tibial_cartilage", "femoral_cartilage"),
+         "patellofemoral": ("patellar_cartilage", "femoral_cartilage")}
+#: Stabilising springs on the free degrees of freedom: N/mm and N mm/rad.
+STABILISER_N_MM, STABILISER_NMM_RAD = 5.0, 2000.0
+#: Where the quadriceps pulls from: this far up the femoral shaft (deck Z), mm; and how far it is
+#: drawn up to reach its force (the spring's force then stays nearly constant).
+QUADRICEPS_ORIGIN_MM, QUADRICEPS_DRAW_MM = 60.0, 5.0
+
+
+@dataclass(frozen=True)
+class LoadCase:
+    """What the deck asks of the knee."""
+
+    joint_load_n: float = 1000.0
+    quadriceps_n: float = 300.0
+    flexion_deg: float = 90.0
+    max_increment_deg: float = 3.0
+    cartilage: str = "rigid"  # or "deformable" (Abaqus deck)
+
+
+@dataclass
+class Part:
+    """One cartilage's hexahedra in the deck: element ids, their nodes (global ids, C3D8 order)."""
+
+    name: str
+    body: str
+    elements: np.ndarray  # (E,) ids
+    connectivity: np.ndarray  # (E, 8) global node ids
+    articular: np.ndarray  # (A,) element ids whose S2 face is articular
+    bone_side: np.ndarray  # (B,) element ids whose S1 face lies on the bone side
+    thickness_mm: float
+
+
+@dataclass
+class Spring:
+    name: str
+    bundle: str
+    element: int
+    nodes: tuple[int, int]
+    stiffness_n: float
+    slack_length_mm: float
+    length_mm: float  # in the deck's initial pose
+
+
+@dataclass
+class Model:
+    nodes: dict[int, np.ndarray] = field(default_factory=dict)  # id -> (3,) deck frame, mm
+    bone_nodes: dict[str, np.ndarray] = field(default_factory=dict)  # bone -> ids
+    bone_triangles: dict[str, np.ndarray] = field(default_factory=dict)  # bone -> (T, 3) ids
+    parts: dict[str, Part] = field(default_factory=dict)
+    springs: list[Spring] = field(default_factory=list)
+    ref: dict[str, int] = field(default_factory=dict)  # body -> reference node
+    body_nodes: dict[str, list[int]] = field(default_factory=dict)  # body -> nodes that must move with it
+    contact_k: dict[str, float] = field(default_factory=dict)  # pair -> N/mm^3
+    quadriceps: Spring | None = None
+    patella_anterior: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    seating: dict = field(default_factory=dict)
+    frame: dict = field(default_factory=dict)
+    load: LoadCase = LoadCase()
+    side: str = "right"
+    next_id: int = 1
+
+    def add_nodes(self, points: np.ndarray) -> np.ndarray:
+        ids = np.arange(self.next_id, self.next_id + len(points))
+        for i, p in zip(ids, points):
+            self.nodes[int(i)] = np.asarray(p, float)
+        self.next_id += len(points)
+        return ids
+
+
+def deck_frame(attachments: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Origin (3,) and rotation (3, 3) whose columns are the deck's X (patient's right along the
+    flexion axis), Y (anterior) and Z (superior along the femoral shaft), all in LPS."""
+    femur = attachments["frames"]["femur"]
+    lateral = np.asarray(femur["axes"]["lateral"])
+    x = lateral if attachments["side"] == "right" else -lateral
+    z = np.asarray(femur["axes"]["proximal"])
+    z = z - (z @ x) * x
+    z /= np.linalg.norm(z)
+    return np.asarray(femur["origin_mm"], float), np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def blankevoort(k: float, slack: float, length: float, points: int = 48) -> list[tuple[float, float]]:
+    """(force N, elongation mm) pairs of a fibre of stiffness ``k`` (N per unit strain), slack length
+    ``slack`` and initial length ``length`` (mm), elongation measured from the initial length."""
+    elong = np.unique(np.concatenate([np.linspace(-0.5 * length, -0.02 * length, 6),
+                                      np.linspace(-0.02 * length, 0.35 * length, points)]))
+    strain = (length + elong) / slack - 1.0
+    et = TRANSITION_STRAIN
+    force = np.where(strain <= 0, 1e-3 * k * strain,
+                     np.where(strain < et, k * strain ** 2 / (2 * et), k * (strain - et / 2)))
+    return [(float(f), float(d)) for f, d in zip(force, elong)]
+
+
+def build(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
+    """The model of a meshed job folder (``meshes/``, ``attachments.json``)."""
+    out = Path(out_dir)
+    att_file = out / "attachments.json"
+    if not att_file.exists():
+        raise KneeMeshError("anatomy_missing", "the decks need the attachment sites and frames (attachments.json): "
+                            "run the whole job (bones, cartilage and anatomy) first.")
+    att = json.loads(att_file.read_text())
+    missing = [f"{t}.vtu" for t in CARTILAGES if not (out / "meshes" / f"{t}.vtu").exists()]
+    missing += [f"{b}.vtp" for b in BONES if not (out / "meshes" / f"{b}.vtp").exists()]
+    if missing:
+        raise KneeMeshError("mesh_missing", f"the decks need every bone and cartilage mesh; missing: {', '.join(missing)}.")
+    origin, rot = deck_frame(att)
+
+    def to_deck(p) -> np.ndarray:
+        return (np.asarray(p, float) - origin) @ rot
+
+    m = Model(load=load, side=att["side"],
+              frame={"origin_lps_mm": origin.round(4).tolist(),
+                     "axes_lps": {"X_right": rot[:, 0].round(6).tolist(), "Y_anterior": rot[:, 1].round(6).tolist(),
+                                  "Z_superior": rot[:, 2].round(6).tolist()}})
+    for bone in BONES:
+        mesh = pv.read(out / "meshes" / f"{bone}.vtp")
+        ids = m.add_nodes(to_deck(mesh.points))
+        m.bone_nodes[bone] = ids
+        m.bone_triangles[bone] = ids[mesh.regular_faces]
+        m.body_nodes[bone] = []
+    element = 1
+    for tissue in CARTILAGES:
+        grid = pv.read(out / "meshes" / f"{tissue}.vtu")
+        layer = np.asarray(grid.cell_data["layer"])
+        top = int(layer.max())
+        keep = layer == top if load.cartilage == "rigid" else np.ones(len(layer), bool)
+        conn = np.asarray(grid.cells_dict[pv.CellType.HEXAHEDRON])[keep]
+        used = np.unique(conn)
+        ids = m.add_nodes(to_deck(grid.points[used]))
+        lookup = np.zeros(grid.n_points, int)
+        lookup[used] = ids
+        elements = np.arange(element, element + len(conn))
+        element += len(conn)
+        kept_layer = layer[keep]
+        pts = np.asarray(grid.points)
+        art_nodes = np.asarray(grid.point_data["articular"], bool)
+        bone_nodes = np.asarray(grid.point_data["bone_side"], bool)
+        thick = np.linalg.norm(pts[art_nodes] - pts[bone_nodes], axis=1) if art_nodes.sum() == bone_nodes.sum() else None
+        m.parts[tissue] = Part(tissue, BONE_OF[tissue], elements, lookup[conn], elements[kept_layer == top],
+                               elements[kept_layer == (top if load.cartilage == "rigid" else 0)],
+                               float(np.median(thick)) if thick is not None else 2.0)
+        m.body_nodes[BONE_OF[tissue]].extend(ids.tolist())
+    for name, (slave, master) in PAIRS.items():
+        m.contact_k[name] = round(CARTILAGE_MODULUS_MPA / (m.parts[slave].thickness_mm + m.parts[master].thickness_mm), 4)
+    # reference nodes: femur and patella at their frames' origins, tibia at the tibial frame's
+    for body in BONES:
+        m.ref[body] = int(m.add_nodes(to_deck(np.asarray(att["frames"][body]["origin_mm"])[None]))[0])
+    # ligaments: one node per fibre end, moving with the body of its bone
+    for fibre in att["fibres"]:
+        ends = fibre["ends"]
+        if any(e["lps_mm"] is None for e in ends):
+            continue
+        a, b = (int(m.add_nodes(to_deck(np.asarray(e["lps_mm"])[None]))[0]) for e in ends)
+        for e, n in zip(ends, (a, b)):
+            m.body_nodes[e["bone"]].append(n)
+        length = float(np.linalg.norm(m.nodes[a] - m.nodes[b]))
+        m.springs.append(Spring(fibre["name"], fibre["bundle"], element, (a, b), fibre["stiffness_n"],
+                                fibre["slack_length_mm"], length))
+        element += 1
+    # the quadriceps: from the patella's proximal pole to a point up the femoral shaft, which the
+    # ccx deck moves with the femur's flexion (not part of the femur: it pulls the patella first)
+    patella = att["frames"]["patella"]
+    pole = to_deck(np.asarray(patella["origin_mm"]) + 15.0 * np.asarray(patella["axes"]["proximal"]))
+    shaft = np.array([0.0, 0.0, QUADRICEPS_ORIGIN_MM])
+    a, b = (int(i) for i in m.add_nodes(np.stack([pole, shaft])))
+    m.body_nodes["patella"].append(a)
+    m.quadriceps = Spring("QUADRICEPS", "QUAD", element, (a, b), 0.0, 0.0, float(np.linalg.norm(pole - shaft)))
+    m.patella_anterior = np.asarray(patella["axes"]["anterior"]) @ rot
+    m.seating = seat(m)
+    return m
+
+
+def _articular_mesh(m: Model, tissue: str):
+    """The triangulated articular (S2) faces of a cartilage as a trimesh (Embree rays), and their node ids."""
+    import trimesh
+
+    part = m.parts[tissue]
+    quads = part.connectivity[np.searchsorted(part.elements, part.articular)][:, [4, 7, 6, 5]]
+    ids = np.unique(quads)
+    local = np.searchsorted(ids, quads)
+    tris = np.concatenate([local[:, [0, 1, 2]], local[:, [0, 2, 3]]])
+    return trimesh.Trimesh(np.stack([m.nodes[int(i)] for i in ids]), tris, process=False), ids
+
+
+def gaps(m: Model, slave: str, master: str, direction: np.ndarray) -> np.ndarray:
+    """Distance (mm) from each articular node of ``slave`` along unit ``direction`` to the articular
+    surface of ``master``: negative where the two overlap, NaN where the ray misses it."""
+    surface, _ = _articular_mesh(m, master)
+    _, ids = _articular_mesh(m, slave)
+    pts = np.stack([m.nodes[int(i)] for i in ids])
+    back = 20.0  # rays start this far behind each node, so an overlap is found too
+    locations, index, _ = surface.ray.intersects_location(pts - back * direction, np.tile(direction, (len(pts), 1)),
+                                                          multiple_hits=False)
+    out = np.full(len(pts), np.nan)
+    out[index] = (locations - (pts[index] - back * direction)) @ direction - back
+    return out
+
+
+def _move(m: Model, body: str, shift: np.ndarray) -> None:
+    for n in {*m.body_nodes[body], *m.bone_nodes[body].tolist(), m.ref[body]}:
+        m.nodes[int(n)] = m.nodes[int(n)] + shift
+
+
+def seat(m: Model) -> dict:
+    """Seat the bones before any load: the femur moves along Z until its cartilage just touches the
+    tibial cartilage (down across a gap, up out of an overlap), then the patella along its anterior
+    axis until it just touches the femoral cartilage.  A solver cannot start from an overclosure of
+    rigid cartilage; the overlaps of the image pose are reported."""
+    z = np.array([0.0, 0.0, 1.0])
+    before = {}
+    for pair in ("medial", "lateral"):
+        g = gaps(m, PAIRS[pair][0], PAIRS[pair][1], z)
+        before[pair] = g
+    g = np.concatenate(list(before.values()))
+    femur_shift = -float(np.nanmin(g)) if np.isfinite(g).any() else 0.0
+    _move(m, "femur", femur_shift * z)
+    toward = -m.patella_anterior  # the patella's articular side faces posterior, towards the trochlea
+    pf = gaps(m, "patellar_cartilage", "femoral_cartilage", toward)
+    patella_shift = float(np.nanmin(pf)) if np.isfinite(pf).any() else 0.0
+    _move(m, "patella", patella_shift * toward)
+    pf_before = pf  # measured after the femur was seated, along the patella's axis
+    for s in m.springs:
+        s.length_mm = float(np.linalg.norm(m.nodes[s.nodes[0]] - m.nodes[s.nodes[1]]))
+    q = m.quadriceps
+    q.length_mm = float(np.linalg.norm(m.nodes[q.nodes[0]] - m.nodes[q.nodes[1]]))
+
+    def overlap(v: np.ndarray) -> float:
+        return round(float(max(0.0, -np.nanmin(v))) if np.isfinite(v).any() else 0.0, 3)
+
+    return {"initial_overlap_mm": {"medial": overlap(before["medial"]), "lateral": overlap(before["lateral"]),
+                                   "patellofemoral": overlap(pf_before)},
+            "initial_overlap_nodes": {k: int((v < 0).sum()) for k, v in (*before.items(), ("patellofemoral", pf_before))},
+            "femur_shift_mm": round(femur_shift, 3), "patella_shift_mm": round(patella_shift, 3)}

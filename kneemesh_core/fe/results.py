@@ -1,0 +1,180 @@
+"""CalculiX results to ``results.json`` and ``contact.png``.
+
+The .dat file holds, per converged increment: the contact statistics of each pair (total force,
+area, normal force), the contact stress at each slave integration point, and the displacements of
+the reference, rotation and ligament-end nodes.  Forces in the ligaments are not printed by ccx
+for SPRINGA elements; they follow from the ends' positions and the fibres' law.  Hand-written: no
+package reads ccx 2.20's .dat tables (ccx2paraview reads the .frd only).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from kneemesh_core.fe.model import TRANSITION_STRAIN
+
+_STATS = re.compile(r"^\s*statistics for slave set (\S+), master set (\S+) and time\s+(\S+)")
+_TABLE = re.compile(r"^\s*(displacements|forces|contact stress)\b.*?(?:for set (\S+)|for all contact elements)\s+and time\s+(\S+)")
+
+
+def parse_dat(path: Path) -> dict:
+    """{"contact": {time: {slave: {force, area, normal_force}}}, "stress": {time: [(element, pressure)]},
+    "nodes": {(table, set): {time: {node: (3,)}}}}."""
+    contact: dict = defaultdict(dict)
+    stress: dict = defaultdict(list)
+    nodes: dict = defaultdict(lambda: defaultdict(dict))
+    lines = Path(path).read_text().splitlines()
+    i, current = 0, None
+    while i < len(lines):
+        line = lines[i]
+        m = _STATS.match(line)
+        if m:
+            numbers = []
+            j = i + 1
+            while j < len(lines) and len(numbers) < 4:
+                parts = lines[j].split()
+                if parts and all(re.fullmatch(r"[-+0-9.Ee]+|NaN|nan|-?Infinity|-?inf", p) for p in parts):
+                    numbers.append([float(p) for p in parts])
+                j += 1
+            force, _, _, anf = numbers
+            contact[float(m.group(3))][m.group(1)] = {"force": force[:3], "area": anf[0], "normal_force": anf[1]}
+            i, current = j, None
+            continue
+        m = _TABLE.match(line)
+        if m:
+            current = (m.group(1), m.group(2), float(m.group(3)))
+        elif current is not None and line.strip():
+            parts = line.split()
+            if current[0] == "contact stress":
+                stress[current[2]].append((int(parts[0]), float(parts[2])))
+            else:
+                nodes[(current[0], current[1])][current[2]][int(parts[0])] = np.array([float(p) for p in parts[1:4]])
+        i += 1
+    return {"contact": dict(contact), "stress": dict(stress), "nodes": nodes}
+
+
+def fibre_force(k: float, slack: float, length: float) -> float:
+    """Blankevoort force (N) of a fibre of stiffness ``k`` at ``length`` (mm)."""
+    e = length / slack - 1.0
+    if e <= 0:
+        return 0.0
+    et = TRANSITION_STRAIN
+    return float(k * e * e / (2 * et) if e < et else k * (e - et / 2))
+
+
+def summarise(dat: dict, meta: dict) -> list[dict]:
+    """One entry per converged increment: flexion, per-pair contact, ligament forces by bundle, and
+    the femur's force balance."""
+    pairs = meta["pairs"]  # name -> slave surface name
+    elements = {name: (lo, hi) for name, (lo, hi) in meta["slave_elements"].items()}
+    refs = dat["nodes"].get(("displacements", "REFS"), {})
+    rots = dat["nodes"].get(("displacements", "ROTS"), {})
+    ends = dat["nodes"].get(("displacements", "LIGAMENT_ENDS"), {})
+    out = []
+    for t in sorted(dat["contact"]):
+        row: dict = {"time": t, "flexion_deg": round(float(np.degrees(rots[t][meta["rot"]["femur"]][0])), 3) if t in rots else None}
+        femur_force = np.array([0.0, 0.0, -meta["joint_load_n"] * min(t, 1.0)])  # ramped over step 1
+        pressures = dat["stress"].get(t, [])
+        for name, slave in pairs.items():
+            c = dat["contact"][t].get(slave, {"force": [0, 0, 0], "area": 0.0, "normal_force": 0.0})
+            force = -c["normal_force"] if np.isfinite(c["normal_force"]) else 0.0
+            area = c["area"] if np.isfinite(c["area"]) else 0.0
+            lo, hi = elements[name]
+            peak = max((p for e, p in pressures if lo <= e <= hi), default=0.0)
+            row[name] = {"force_n": round(force, 3), "area_mm2": round(area, 3),
+                         "mean_pressure_mpa": round(force / area, 4) if area > 0 else 0.0,
+                         "peak_pressure_mpa": round(max(peak, 0.0), 4)}
+            femur_force -= np.nan_to_num(np.asarray(c["force"], float))  # the femur feels the opposite
+        bundles: dict = defaultdict(float)
+        if t in ends:
+            u = ends[t]
+            for f in meta["fibres"]:
+                a, b = f["nodes"]
+                pa, pb = np.asarray(f["start"][0]) + u[a], np.asarray(f["start"][1]) + u[b]
+                force = fibre_force(f["k"], f["slack"], float(np.linalg.norm(pa - pb)))
+                bundles[f["bundle"]] += force
+                if f["femur_end"] is not None and force > 0:  # pulls the femur towards the other end
+                    fe, other = (pa, pb) if f["femur_end"] == 0 else (pb, pa)
+                    femur_force += force * (other - fe) / np.linalg.norm(other - fe)
+        if t in refs:
+            femur_force -= meta["stabiliser_n_mm"] * refs[t][meta["ref"]["femur"]]
+        row["ligaments_n"] = {b: round(v, 2) for b, v in sorted(bundles.items())}
+        row["femur_force_balance_n"] = np.round(femur_force, 3).tolist()
+        row["balance_error"] = round(float(np.linalg.norm(femur_force) / meta["joint_load_n"]), 4)
+        out.append(row)
+    return out
+
+
+#: An increment is trusted only if the femur's forces balance within this fraction of the joint load ...
+MAX_BALANCE_ERROR = 0.05
+
+
+def first_invalid(increments: list[dict]) -> str | None:
+    """Why the run stops being physics, or None: ccx can 'converge' on an increment whose femur has
+    lost the tibia (no tibiofemoral contact under the joint load) and whose forces do not balance."""
+    for r in increments:
+        if r["time"] < 1.0:
+            continue  # the load is still rising; only the end of the seating step is checked
+        tf = r["medial"]["force_n"] + r["lateral"]["force_n"]
+        if r["balance_error"] > MAX_BALANCE_ERROR or tf <= 0:
+            return (f"at {r['flexion_deg']:.1f} deg of flexion the femur's forces no longer balance the joint load "
+                    f"(error {r['balance_error']:.0%}, tibiofemoral contact {tf:.0f} N): it lost the tibia")
+    return None
+
+
+def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
+    """``results.json`` (and ``contact.png``) in ``folder`` from a run and its .dat file.  ``completed``
+    needs ccx to finish and every loaded increment to be physics (:func:`first_invalid`);
+    ``reached_flexion_deg`` is the last trusted increment's flexion."""
+    increments = summarise(parse_dat(dat_path), meta) if dat_path.exists() else []
+    invalid = first_invalid(increments)
+    trusted = [r for r in increments if r["time"] < 1.0 or (r["balance_error"] <= MAX_BALANCE_ERROR
+                                                              and r["medial"]["force_n"] + r["lateral"]["force_n"] > 0)]
+    if invalid:
+        cut = next(i for i, r in enumerate(increments) if r["time"] >= 1.0 and r not in trusted)
+        trusted = increments[:cut]
+    reached = max((r["flexion_deg"] or 0.0 for r in trusted), default=0.0)
+    completed = run.completed and invalid is None
+    result = {"solver": run.version, "completed": completed, "reason": run.reason or invalid, "seconds": round(run.seconds, 2),
+              "applied_load_n": meta["joint_load_n"], "quadriceps_n": meta["quadriceps_n"],
+              "target_flexion_deg": meta["flexion_deg"], "reached_flexion_deg": round(reached, 3),
+              "contact_stiffness_n_mm3": meta["contact_k"], "seating": meta["seating"], "increments": increments}
+    (folder / "results.json").write_text(json.dumps(result, indent=1))
+    if increments:
+        plot(result, folder / "contact.png")
+    return result
+
+
+def plot(result: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    inc = [r for r in result["increments"] if r["flexion_deg"] is not None]
+    x = [r["flexion_deg"] for r in inc]
+    fig, axs = plt.subplots(2, 2, figsize=(10, 7), dpi=80)
+    for name, style in (("medial", "-o"), ("lateral", "-s"), ("patellofemoral", "-^")):
+        for ax, key, label in ((axs[0, 0], "force_n", "contact force, N"), (axs[0, 1], "area_mm2", "contact area, mm^2"),
+                               (axs[1, 0], "peak_pressure_mpa", "peak (solid) and mean (dashed) pressure, MPa")):
+            ax.plot(x, [r[name][key] for r in inc], style, ms=3, label=name)
+            ax.set_ylabel(label)
+        axs[1, 0].plot(x, [r[name]["mean_pressure_mpa"] for r in inc], "--", color=axs[1, 0].lines[-1].get_color())
+    for bundle in sorted({b for r in inc for b in r["ligaments_n"]}):
+        axs[1, 1].plot(x, [r["ligaments_n"].get(bundle, 0.0) for r in inc], label=bundle)
+    axs[1, 1].set_ylabel("ligament force, N")
+    axs[0, 0].legend(fontsize=8)
+    axs[1, 1].legend(fontsize=6, ncol=2)
+    for ax in axs.ravel():
+        ax.set_xlabel("flexion, deg")
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"{result['solver']}: {'completed' if result['completed'] else 'stopped: ' + str(result['reason'])}; "
+                 f"joint load {result['applied_load_n']:g} N", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

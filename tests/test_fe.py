@@ -1,0 +1,193 @@
+"""The decks and CalculiX: an analytic contact case, deck hygiene in both dialects, and a smoke
+simulation of a real knee whose forces balance and whose pressures are physiological."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import SAMPLE, real
+from kneemesh_core import KneeMeshError
+from kneemesh_core.fe import deck
+from kneemesh_core.fe.results import parse_dat
+from kneemesh_core.fe.simulate import run_ccx
+
+pytestmark = pytest.mark.xdist_group("fe")
+
+
+def _block(n: int, z0: float, first_node: int, first_element: int):
+    """A unit block of n^3 C3D8 hexes from z0 to z0 + 1 (node ids from first_node)."""
+    idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1) + first_node  # [k, j, i]
+    g = np.linspace(0.0, 1.0, n + 1)
+    nodes = {int(idx[k, j, i]): (g[i], g[j], z0 + g[k]) for k in range(n + 1) for j in range(n + 1) for i in range(n + 1)}
+    hexes = {}
+    for k in range(n):
+        for j in range(n):
+            for i in range(n):
+                hexes[first_element + len(hexes)] = [idx[k, j, i], idx[k, j, i + 1], idx[k, j + 1, i + 1], idx[k, j + 1, i],
+                                                     idx[k + 1, j, i], idx[k + 1, j, i + 1], idx[k + 1, j + 1, i + 1], idx[k + 1, j + 1, i]]
+    top = [e for e, c in hexes.items() if all(nodes[int(x)][2] > z0 + 1 - 1e-9 for x in c[4:])]
+    bottom = [e for e, c in hexes.items() if all(nodes[int(x)][2] < z0 + 1e-9 for x in c[:4])]
+    return nodes, hexes, top, bottom
+
+
+@pytest.mark.parametrize("twist_deg", [0.0, 10.0])
+def test_two_rigid_blocks_press_with_pressure_k_times_d_over_the_exact_area(tmp_path, twist_deg):
+    """Rigid blocks pressed d = 0.01 into each other under the linear law K = 1e4: pressure K d at
+    every point and force K d A; twisted by 10 deg, the area of the squares' overlap."""
+    k, d = 1.0e4, 0.01
+    a_nodes, a_hex, a_top, _ = _block(4, 0.0, 1, 1)
+    b_nodes, b_hex, _, b_bottom = _block(4, 1.0, 1001, 101)
+    w = ["*HEADING", "two rigid blocks", "*NODE"]
+    w += [f"{i}, {x:.6f}, {y:.6f}, {z:.6f}" for i, (x, y, z) in {**a_nodes, **b_nodes}.items()]
+    w += ["5001, 0.5, 0.5, 0.5", "5002, 0.5, 0.5, 1.5", "5003, 0.5, 0.5, 0.5", "5004, 0.5, 0.5, 1.5"]
+    for name, hexes in (("A", a_hex), ("B", b_hex)):
+        w.append(f"*ELEMENT, TYPE=C3D8, ELSET={name}")
+        w += [f"{e}, " + ", ".join(str(int(n)) for n in c) for e, c in hexes.items()]
+    w += deck._set("NSET", "A_NODES", sorted(a_nodes)) + deck._set("NSET", "B_NODES", sorted(b_nodes))
+    w += deck._set("ELSET", "A_TOP", a_top) + deck._set("ELSET", "B_BOTTOM", b_bottom)
+    w += ["*SURFACE, NAME=SA, TYPE=ELEMENT", "A_TOP, S2", "*SURFACE, NAME=SB, TYPE=ELEMENT", "B_BOTTOM, S1",
+          "*MATERIAL, NAME=M", "*ELASTIC", "1000.0, 0.3", "*SOLID SECTION, ELSET=A, MATERIAL=M", "*SOLID SECTION, ELSET=B, MATERIAL=M",
+          "*RIGID BODY, NSET=A_NODES, REF NODE=5001, ROT NODE=5003", "*RIGID BODY, NSET=B_NODES, REF NODE=5002, ROT NODE=5004",
+          "*SURFACE INTERACTION, NAME=LAW", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", f"{k:.6e}",
+          "*CONTACT PAIR, INTERACTION=LAW, TYPE=SURFACE TO SURFACE", "SB, SA", "*AMPLITUDE, NAME=RAMP", "0.0, 0.0, 1.0, 1.0",
+          "*STEP, NLGEOM, INC=100", "*STATIC", "0.25, 1.0", "*BOUNDARY", "5001, 1, 3, 0.0", "5003, 1, 3, 0.0",
+          "5002, 1, 2, 0.0", "5004, 1, 3, 0.0", "*BOUNDARY, AMPLITUDE=RAMP", f"5002, 3, 3, {-d}",
+          "*CONTACT PRINT, SLAVE=SB, MASTER=SA", "CF", "*CONTACT PRINT", "CSTR", "*END STEP"]
+    if twist_deg:
+        w += ["*STEP, NLGEOM, INC=100", "*STATIC", "0.1, 1.0", "*BOUNDARY, AMPLITUDE=RAMP",
+              f"5004, 3, 3, {np.radians(twist_deg):.6f}", "*CONTACT PRINT, SLAVE=SB, MASTER=SA", "CF", "*END STEP"]
+    (tmp_path / "blocks.inp").write_text("\n".join(w) + "\n")
+    run = run_ccx(tmp_path, "blocks", timeout_s=120)
+    assert run.completed, run.reason
+    dat = parse_dat(tmp_path / "blocks.dat")
+    pressed = dat["contact"][1.0]["SB"]
+    assert pressed["area"] == pytest.approx(1.0, rel=1e-6)
+    assert -pressed["normal_force"] == pytest.approx(k * d * 1.0, rel=1e-6)
+    assert all(p == pytest.approx(k * d, rel=1e-6) for _, p in dat["stress"][1.0])
+    if twist_deg:  # the overlap of the two squares, one turned about their common centre
+        twisted = dat["contact"][max(dat["contact"])]["SB"]
+        assert twisted["area"] == pytest.approx(_overlap(twist_deg), abs=0.01)  # pairing lags one increment
+
+
+def _overlap(deg: float) -> float:
+    """Area where a unit square and the same square turned by ``deg`` about its centre overlap
+    (Sutherland-Hodgman clipping, then the shoelace formula)."""
+    square = [(-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5)]
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    poly = [(c * x - s * y, s * x + c * y) for x, y in square]
+    for (x1, y1), (x2, y2) in zip(square, square[1:] + square[:1]):
+        inside = lambda p: (x2 - x1) * (p[1] - y1) - (y2 - y1) * (p[0] - x1) >= 0  # noqa: E731
+        clipped = []
+        for p, q in zip(poly, poly[1:] + poly[:1]):
+            if inside(q):
+                if not inside(p):
+                    clipped.append(_cross(p, q, (x1, y1), (x2, y2)))
+                clipped.append(q)
+            elif inside(p):
+                clipped.append(_cross(p, q, (x1, y1), (x2, y2)))
+        poly = clipped
+    return 0.5 * abs(sum(a[0] * b[1] - b[0] * a[1] for a, b in zip(poly, poly[1:] + poly[:1])))
+
+
+def _cross(p, q, a, b):
+    """Where the segment p-q meets the line through a and b."""
+    d = (p[0] - q[0]) * (a[1] - b[1]) - (p[1] - q[1]) * (a[0] - b[0])
+    t = ((p[0] - a[0]) * (a[1] - b[1]) - (p[1] - a[1]) * (a[0] - b[0])) / d
+    return (p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]))
+
+
+def test_a_missing_ccx_and_a_skipped_card_are_clear_errors(tmp_path, monkeypatch):
+    (tmp_path / "bad.inp").write_text("*HEADING\nx\n*PART, NAME=P\n*NODE\n1, 0, 0, 0\n*STEP\n*STATIC\n*END STEP\n")
+    with pytest.raises(KneeMeshError) as e:
+        run_ccx(tmp_path, "bad", timeout_s=60)
+    assert e.value.code == "deck_skipped" and "skipped part of the deck" in e.value.message
+    monkeypatch.setenv("PATH", str(tmp_path))
+    with pytest.raises(KneeMeshError) as e:
+        run_ccx(tmp_path, "bad")
+    assert e.value.code == "ccx_missing" and "apt-get install calculix-ccx" in e.value.message
+
+
+@pytest.fixture(scope="module")
+def knee(tmp_path_factory):
+    """The sample knee meshed at 2 mm (a quick model), with its decks and a smoke run."""
+    from kneemesh_core.job import JobRequest, run
+
+    out = tmp_path_factory.mktemp("knee")
+    report = run(real(SAMPLE), out, JobRequest.build(element_size=2.0, simulate="smoke").job_options(), workers=2)
+    return out, report
+
+
+def _cards(text: str) -> list[str]:
+    return [line.split(",")[0].strip().upper() for line in text.splitlines() if line.startswith("*") and not line.startswith("**")]
+
+
+def test_decks_are_clean_in_both_dialects(knee):
+    out, report = knee
+    assert report["fe"]["status"] == "ok"
+    fe = out / "fe"
+    shared, ccx, abq = ((fe / f).read_text() for f in (deck.MODEL_FILE, deck.CCX_FILE, deck.ABAQUS_FILE))
+    for text in (shared, ccx, abq):
+        for line in text.splitlines():
+            if not line.startswith("*") and "," in line:
+                assert len([x for x in line.split(",") if x.strip()]) <= 16, line[:80]
+        cards = set(_cards(text))
+        assert not cards & {"*PART", "*ASSEMBLY", "*INSTANCE", "*KINEMATIC COUPLING", "*CONNECTOR SECTION"}
+    assert f"*INCLUDE, INPUT={deck.MODEL_FILE}" in ccx and f"*INCLUDE, INPUT={deck.MODEL_FILE}" in abq
+    assert "ENCASTRE" not in ccx and "NAME=" not in "".join(l for l in ccx.splitlines() if l.startswith("*STEP"))
+    assert "R3D3" in abq and "R3D3" not in ccx + shared and "ROT NODE" in ccx and "ROT NODE" not in abq
+    assert "DYNAMIC, EXPLICIT" in abq and "*STATIC" in ccx
+    # unique ids across the include and each wrapper; every set and surface used is defined
+    for wrapper in (ccx, abq):
+        text = shared + wrapper
+        nodes, elements, block = [], [], None
+        for line in text.splitlines():
+            if line.startswith("*"):
+                card = line.split(",")[0].strip().upper()
+                block = "node" if card == "*NODE" else "element" if card == "*ELEMENT" else None
+            elif block and line.strip():
+                (nodes if block == "node" else elements).append(int(line.split(",")[0]))
+        assert len(nodes) == len(set(nodes)) and len(elements) == len(set(elements))
+        defined = set(re.findall(r"^\*(?:NSET|ELSET), (?:NSET|ELSET)=(\w+)", text, re.M)) | set(re.findall(r"ELSET=(\w+)", text))
+        surfaces = set(re.findall(r"^\*SURFACE, NAME=(\w+)", text, re.M))
+        for a, b in re.findall(r"^\*CONTACT PAIR.*\n(\w+), (\w+)", text, re.M):
+            assert a in surfaces and b in surfaces
+        for name in re.findall(r"(?:NSET|ELSET)=(\w+)", text):
+            assert name in defined, name
+    # the same model data under both: the Abaqus wrapper adds bones and bodies, not new cartilage
+    assert _cards(shared).count("*ELEMENT") >= 6 and "C3D8" in shared
+
+
+def test_smoke_simulation_of_a_real_knee_balances_with_physiological_contact(knee):
+    out, report = knee
+    sim = report["simulation"]
+    assert sim["completed"], sim["reason"]
+    r = json.loads((out / "fe" / "smoke" / "results.json").read_text())
+    assert r["solver"].startswith("ccx") and r["reached_flexion_deg"] == pytest.approx(15.0)
+    assert (out / "fe" / "smoke" / "contact.png").stat().st_size > 10_000
+    loaded = [i for i in r["increments"] if i["time"] >= 1.0]  # the whole joint load on, flexing
+    for inc in loaded:
+        assert inc["balance_error"] < 0.05, inc  # the femur's forces balance the joint load
+        for side in ("medial", "lateral"):
+            c = inc[side]
+            assert c["force_n"] > 100 and 100 < c["area_mm2"] < 1500 and c["peak_pressure_mpa"] < 20, (side, c)
+    assert report["fe"]["seating"]["femur_shift_mm"] == pytest.approx(r["seating"]["femur_shift_mm"])
+
+
+def test_a_run_whose_femur_loses_the_tibia_is_not_completed():
+    """ccx may 'converge' after the femur slid off the tibia: such increments are not physics."""
+    from kneemesh_core.fe.results import first_invalid
+
+    def inc(t, flex, tf, err):
+        return {"time": t, "flexion_deg": flex, "medial": {"force_n": tf / 2}, "lateral": {"force_n": tf / 2},
+                "balance_error": err}
+
+    good = [inc(0.5, 0.0, 0.0, 0.7), inc(1.0, 0.0, 1100.0, 0.004), inc(1.5, 45.0, 1150.0, 0.005)]
+    assert first_invalid(good) is None  # the rising load of the seating step is not judged
+    reason = first_invalid(good + [inc(1.8, 72.0, 0.0, 0.88)])
+    assert reason and "72.0 deg" in reason and "lost the tibia" in reason
