@@ -156,7 +156,7 @@ def plot(result: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    inc = [r for r in result["increments"] if r["flexion_deg"] is not None]
+    inc = [r for r in result["increments"] if r["flexion_deg"] is not None and r["time"] >= 1.0]  # the whole load on
     x = [r["flexion_deg"] for r in inc]
     fig, axs = plt.subplots(2, 2, figsize=(10, 7), dpi=80)
     for name, style in (("medial", "-o"), ("lateral", "-s"), ("patellofemoral", "-^")):
