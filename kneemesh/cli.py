@@ -158,10 +158,10 @@ def _run_job(input_path: Path, out_dir: Path, request: JobRequest, workers: int)
     for col in ("tissue", "status", "s", "elements", "volume ml", "label ml", "quality", "fidelity"):
         t.add_column(col)
     for tissue, e in report["tissues"].items():
-        if e["status"] != "ok" and "n_elements" not in e:
+        if e["status"] == "failed" and "n_elements" not in e and "n_cells" not in e:  # no mesh at all
             t.add_row(tissue, "[red]failed[/]", f"{e['seconds']:.1f}", "", "", "", "", e["reason"])
             continue
-        status = "ok" if e["status"] == "ok" else "[red]failed[/]"
+        status = {"ok": "ok", "review": "[yellow]review[/]"}.get(e["status"], "[red]failed[/]")
         if "n_elements" in e:  # hex cartilage
             quality = f"min SJ {e['min_scaled_jacobian']:.2f}, {e['frac_sj_below_0_5']:.2%} < 0.5"
             fid = f"cover {e['coverage']:.1%}, dev p95 {e['surface_deviation_mm']['p95']:.2f} mm"
@@ -190,6 +190,9 @@ def _run_job(input_path: Path, out_dir: Path, request: JobRequest, workers: int)
                   highlight=False)
     if "simulation" in report:
         _print_simulation(report["simulation"])
+    verdict = report["verdict"]
+    colour = {"ok": "green", "review": "yellow"}.get(verdict["status"], "red")
+    out.print(f"verdict: [{colour}]{verdict['status']}[/]" + "".join(f"\n  {r}" for r in verdict["reasons"]), highlight=False)
     out.print(f"report: {Path(out_dir) / 'report.json'}")
     if report["summary"]["failed"]:
         raise typer.Exit(1)

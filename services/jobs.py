@@ -17,7 +17,7 @@ import uuid
 from pathlib import Path
 
 from kneemesh_core.io.files import atomic_write_json
-from kneemesh_core.job import INGEST, JobOptions, plan, read_step, utc_now
+from kneemesh_core.job import INGEST, REPORT_FILE, JobOptions, plan, read_step, utc_now
 from kneemesh_core.tissues import BONES, CARTILAGES
 from services.store import FileStore
 
@@ -106,6 +106,13 @@ class Jobs:
                     row["error"] = {"code": code, "message": r.get("reason") or result.get("reason", "")}
                 rows.append(row)
         return rows
+
+    def verdict(self, rec: JobRecord) -> dict | None:
+        """The knee's verdict from its report, once written."""
+        try:
+            return json.loads((self.out_dir(rec) / REPORT_FILE).read_text()).get("verdict")
+        except (FileNotFoundError, json.JSONDecodeError):
+            return None
 
     @staticmethod
     def state(rec: JobRecord, steps: list[dict]) -> str:

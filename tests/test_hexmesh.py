@@ -168,7 +168,35 @@ def test_pipeline_writes_vtu_in_physical_space(tmp_path, sample):
     assert g.celltypes.tolist() == [pv.CellType.HEXAHEDRON] * g.n_cells
     # C3D8 node order: positive Jacobians as stored
     assert g.cell_quality("scaled_jacobian").cell_data["scaled_jacobian"].min() >= 0.5
+    # the headline figures are the shipped file's, as VTK computes them; the gate's are under "gate"
+    for tissue in ("femoral_cartilage", "lateral_tibial_cartilage"):
+        shipped = pv.read(tmp_path / "meshes" / f"{tissue}.vtu").cell_quality("scaled_jacobian")["scaled_jacobian"]
+        entry = report["tissues"][tissue]
+        assert entry["min_scaled_jacobian"] == pytest.approx(float(shipped.min()), abs=1e-4)
+        assert entry["n_elements"] == len(shipped) and entry["gate"]["gate_passed"]
+        assert entry["gate"]["min_scaled_jacobian"] >= 0.5
     # physical LPS mm: the mesh sits on the lateral plate (right knee: lateral faces -x)
     mtc = pv.read(tmp_path / "meshes" / "medial_tibial_cartilage.vtu")
     assert g.center[0] < mtc.center[0]
     assert json.loads((tmp_path / "report.json").read_text())["input"]["side"] == "right"
+
+
+def test_a_hollow_or_unblended_cartilage_is_review_with_its_reasons_never_ok():
+    """A mesh within the gate that covers 62 % of its cartilage with 37 % of the volume missing (an
+    OA femoral cartilage seen on unseen knees) is review, with every reason; the knee too."""
+    from kneemesh_core.job.verdict import knee_verdict, tissue_verdict
+
+    hollow = {"status": "ok", "coverage": 0.62, "volume_error": -0.37,
+              "surface_deviation_mm": {"median": 0.1, "p95": 0.4}, "blend": {"passed": True}}
+    status, reasons = tissue_verdict(False, hollow)
+    assert status == "review" and any("covers 62.0%" in r for r in reasons) and any("-37.0%" in r for r in reasons)
+    unblended = {**hollow, "coverage": 0.99, "volume_error": 0.01,
+                 "blend": {"passed": False, "reason": "blended mesh missed the quality targets"}}
+    assert tissue_verdict(False, unblended) == ("review", ["edge blend: blended mesh missed the quality targets"])
+    good = {**unblended, "blend": {"passed": True}}
+    assert tissue_verdict(False, good) == ("ok", [])
+    report = {"tissues": {"femoral_cartilage": {**hollow, "status": status, "reasons": reasons},
+                          "tibia": {"status": "ok"}, "patella": {"status": "failed", "reason": "no patella"}}}
+    verdict = knee_verdict(report)
+    assert verdict["status"] == "failed" and "patella: failed: no patella" in verdict["reasons"]
+    assert any(r.startswith("femoral_cartilage: covers 62.0%") for r in verdict["reasons"])

@@ -78,7 +78,7 @@ def test_label_map_job_runs_every_tissue_as_its_own_celery_task(stack):
     backend = c.app.state.runner.app.backend
     assert all(backend.get_task_meta(t)["status"] == "SUCCESS" for t in task_ids)
     assert steps["femoral_cartilage"]["stage"] > steps["femur"]["stage"]  # cartilage after the bones
-    assert sorted(status["tissues_ok"]) == sorted(TISSUES)
+    assert sorted(status["tissues_ok"]) == sorted(TISSUES) and status["verdict"]["status"] == "ok"
 
     listing = c.get(job["urls"]["artifacts"], headers=A).json()["artifacts"]
     names = {a["name"] for a in listing}
@@ -117,7 +117,9 @@ def test_image_job_is_segmented_by_a_worker_then_meshed(stack, tmp_path):
     assert status["state"] == "succeeded", status
     steps = [s["step"] for s in status["steps"]]
     assert steps[:2] == ["ingest", "segment"] and status["steps"][1]["task_id"]
-    assert sorted(status["tissues_ok"]) == ["femur", "patella", "tibia"]
+    # every bone meshed; a segmentation's stray labels make a shell stray from its label: review, said so
+    assert sorted(status["tissues_ok"] + status["tissues_review"]) == ["femur", "patella", "tibia"]
+    assert status["verdict"]["status"] in ("ok", "review") and not status["tissues_failed"]
     out = stack.data / "jobs" / r.json()["id"] / "out"
     labels, source = sitk.ReadImage(str(out / "labels.nrrd")), sitk.ReadImage(str(image))
     assert labels.GetSize() == source.GetSize() and np.allclose(labels.GetOrigin(), source.GetOrigin())

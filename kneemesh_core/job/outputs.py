@@ -16,6 +16,7 @@ from pathlib import Path
 import pyvista as pv
 
 from kneemesh_core.io.files import TMP_PREFIX, atomic_path, atomic_write_json
+from kneemesh_core.job.verdict import knee_verdict, tissue_verdict
 from kneemesh_core.tissues import TISSUES
 
 LABELS_FILE = "labels.nrrd"
@@ -82,17 +83,17 @@ def write_report(out_dir: str | os.PathLike, entries: dict[str, dict], conformed
         for t, f in per.items():
             if t in entries:
                 entries[t]["bone_conform"] = f
+                entries[t]["status"], entries[t]["reasons"] = tissue_verdict(False, entries[t])
     report = {
         **job,
         "tissues": {t: entries[t] for t in TISSUES if t in entries},
         **({"anatomy": anatomy} if anatomy is not None else {}),
         **({"fe": fe} if fe is not None else {}),
         **({"simulation": simulation} if simulation is not None else {}),
-        "summary": {
-            "ok": sorted(t for t, e in entries.items() if e["status"] == "ok"),
-            "failed": sorted(t for t, e in entries.items() if e["status"] != "ok"),
-        },
     }
+    report["verdict"] = knee_verdict(report)
+    report["summary"] = {status: sorted(t for t, e in entries.items() if e["status"] == status)
+                         for status in ("ok", "review", "failed")}
     write_json(out / REPORT_FILE, report)
     return report
 

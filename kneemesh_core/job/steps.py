@@ -16,11 +16,13 @@ import pyvista as pv
 
 from kneemesh_core import __version__
 from kneemesh_core.errors import KneeMeshError
-from kneemesh_core.hexmesh import blend_cartilage, mesh_cartilage
+from kneemesh_core.hexmesh import CartilageMesh, blend_cartilage, mesh_cartilage
+from kneemesh_core.hexmesh.quality import boundary_crossings, summary
 from kneemesh_core.hexmesh.conform import conform_bone
 from kneemesh_core.io import read_label_map, read_volume, voxel_to_lps, write_image
 from kneemesh_core.io.files import atomic_path
 from kneemesh_core.job.options import INPUT_TYPES, JobOptions
+from kneemesh_core.job.verdict import tissue_verdict
 from kneemesh_core.job.outputs import (ATTACHMENTS_FIGURE, ATTACHMENTS_FILE, JOB_FILE, LABELS_FILE, MESHES_DIR,
                                        SURFACES_DIR, read_json, save_mesh, write_json)
 from kneemesh_core.knee import canonicalise, describe, describe_image
@@ -94,18 +96,20 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
             for f in files:
                 save_mesh(mesh, f)
             entry = {"status": "ok", **facts}
+            entry["status"], entry["reasons"] = tissue_verdict(True, entry)
         else:
             cm = mesh_cartilage(labels, tissue, opts.hex)
             ok = cm.facts["gate_passed"]
             if ok and opts.blend is not None:  # the bone stage ran first: fuse onto the bone mesh it wrote
                 bone_file = folder / f"{BONE_OF[tissue]}.vtp"
                 cm = blend_cartilage(cm, pv.read(bone_file) if bone_file.exists() else None, opts.blend)
-            facts = cm.facts
+            facts = shipped_figures(cm)
             (out / SURFACES_DIR).mkdir(exist_ok=True)
             files = [folder / f"{tissue}{'' if ok else '.rejected'}.vtu", out / SURFACES_DIR / f"{tissue}.vtp"]
             save_mesh(cm.grid(), files[0])
             save_mesh(cm.surface, files[1])
             entry = {"status": "ok" if ok else "failed", **facts}
+            entry["status"], entry["reasons"] = tissue_verdict(False, entry) if ok else ("failed", [])
             if not ok:
                 entry["code"] = "quality_gate"
                 entry["reason"] = (f"quality gate not met after {len(facts['attempts'])} attempts: min scaled Jacobian "
@@ -120,6 +124,20 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
                  "traceback": traceback.format_exc(limit=5)}
     entry["seconds"] = round(time.perf_counter() - t0, 3)
     return entry
+
+
+def shipped_figures(cm: CartilageMesh) -> dict:
+    """A cartilage's report figures with the headline quality of the mesh that ships (blended where
+    the blend was applied); the figures the gate judged, before blending, move under ``gate``."""
+    facts = dict(cm.facts)
+    quality_keys = ("n_elements", "min_scaled_jacobian", "frac_sj_below_0_5", "inverted", "collapsed", "max_edge_ratio",
+                    "frac_edge_ratio_above_6", "shortest_edge_mm", "sj_by_ring", "self_intersections")
+    facts["gate"] = {k: facts[k] for k in (*quality_keys, "gate_passed") if k in facts}
+    shipped = summary(cm.quality, cm.mesh.ring)
+    shipped["self_intersections"] = (facts["blend"]["self_intersections"] if facts.get("blend", {}).get("applied")
+                                     else boundary_crossings(cm.mesh.points, cm.mesh.hexes))
+    facts.update(shipped)
+    return facts
 
 
 def conform_bones(out_dir: str | os.PathLike, options: dict) -> dict:

@@ -43,6 +43,11 @@ class StepProgress(BaseModel):
     error: Error | None = None
 
 
+class Verdict(BaseModel):
+    status: Literal["ok", "review", "failed"]
+    reasons: list[str]
+
+
 class JobStatus(BaseModel):
     id: str
     state: State
@@ -55,7 +60,9 @@ class JobStatus(BaseModel):
     progress: float = Field(description="Fraction of steps finished, 0 to 1.")
     steps: list[StepProgress]
     tissues_ok: list[str]
+    tissues_review: list[str] = Field(default_factory=list, description="Meshed, but missing a fidelity or plausibility target (see verdict).")
     tissues_failed: list[str]
+    verdict: Verdict | None = Field(None, description="The knee's verdict once its report is written: ok, review or failed, with every reason.")
     error: Error | None = None
     deleted: bool = False
     urls: Links

@@ -25,7 +25,8 @@ def job_status(request: Request, jobs: Jobs, rec: JobRecord) -> schemas.JobStatu
         queue_position=jobs.queue_position(rec) if state == "queued" else None,
         progress=round(sum(s["state"] in ("done", "failed") for s in steps) / max(len(steps), 1), 3),
         steps=steps, tissues_ok=[s["step"] for s in tissues if s["status"] == "ok"],
-        tissues_failed=[s["step"] for s in tissues if s["status"] != "ok"],
+        tissues_review=[s["step"] for s in tissues if s["status"] == "review"],
+        tissues_failed=[s["step"] for s in tissues if s["status"] == "failed"], verdict=jobs.verdict(rec),
         error=failed_step.get("error") if failed_step else None, deleted=rec.deleted, urls=links(request, rec.id))
 
 

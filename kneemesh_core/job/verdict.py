@@ -1,0 +1,78 @@
+"""One verdict per tissue and per knee that a cohort can filter on: ``ok``, ``review`` or ``failed``.
+
+``ok`` means every target was met for the file that ships; ``review`` means the file exists but
+misses a fidelity or plausibility target; ``failed`` means there is no usable file.  Every
+``review`` and ``failed`` lists its reasons.  The targets are those of
+:mod:`kneemesh_core.hexmesh.targets` (cartilage) and :data:`BONE_TARGETS`.
+"""
+
+from __future__ import annotations
+
+from kneemesh_core.hexmesh.fidelity import fidelity_checks
+from kneemesh_core.hexmesh.targets import (FUSED_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM, MIN_COVERAGE,
+                                           VOLUME_TOL)
+
+OK, REVIEW, FAILED = "ok", "review", "failed"
+_RANK = {OK: 0, REVIEW: 1, FAILED: 2}
+#: A bone shell: closed, manifold, not crossing itself, within these distances of its label (mm).
+BONE_TARGETS = {"mean_mm": 0.3, "p95_mm": 0.8}
+
+
+def worst(statuses) -> str:
+    return max(statuses, key=_RANK.get, default=OK)
+
+
+def bone_reasons(e: dict) -> list[str]:
+    out = []
+    if not (e.get("watertight") and e.get("manifold")):
+        out.append("the bone shell is not closed and manifold")
+    if e.get("self_intersections"):
+        out.append(f"the bone shell crosses itself ({e['self_intersections']} edges)")
+    d = e.get("surface_distance_mm", {})
+    if d.get("mean", 0) > BONE_TARGETS["mean_mm"] or d.get("p95", 0) > BONE_TARGETS["p95_mm"]:
+        out.append(f"the bone shell lies {d.get('mean')} mm (mean) / {d.get('p95')} mm (p95) from its label "
+                   f"(targets {BONE_TARGETS['mean_mm']} / {BONE_TARGETS['p95_mm']} mm)")
+    return out
+
+
+def cartilage_reasons(e: dict) -> list[str]:
+    """What the shipped cartilage mesh misses: fidelity to its label, the blend and fusion checks, and
+    (after the conform step) cartilage left inside its bone."""
+    out = []
+    checks = fidelity_checks(e)
+    if not checks["coverage"]:
+        out.append(f"covers {e['coverage']:.1%} of the cartilage (target {MIN_COVERAGE:.0%})")
+    if not checks["volume"]:
+        out.append(f"volume {e['volume_error']:+.1%} off the label's (target within {VOLUME_TOL:.0%})")
+    if not checks["deviation_median"] or not checks["deviation_p95"]:
+        d = e["surface_deviation_mm"]
+        out.append(f"articular surface {d['median']} mm (median) / {d['p95']} mm (p95) from the cartilage's "
+                   f"(targets {MAX_DEVIATION_MEDIAN_MM} / {MAX_DEVIATION_P95_MM} mm)")
+    blend = e.get("blend")
+    if blend is not None and not blend.get("passed"):
+        out.append(f"edge blend: {blend.get('reason', 'missed its targets')}")
+    conform = e.get("bone_conform")
+    if conform and conform.get("penetration_conformed_mm", 0) > FUSED_TOL_MM:
+        out.append(f"lies {conform['penetration_conformed_mm']} mm inside its bone after the bone gave way "
+                   f"(target {FUSED_TOL_MM} mm)")
+    return out
+
+
+def tissue_verdict(tissue_is_bone: bool, e: dict) -> tuple[str, list[str]]:
+    """(status, reasons) of one tissue's report entry."""
+    if e.get("status") == FAILED:
+        return FAILED, [e.get("reason", "failed")]
+    reasons = bone_reasons(e) if tissue_is_bone else cartilage_reasons(e)
+    return (REVIEW if reasons else OK), reasons
+
+
+def knee_verdict(report: dict) -> dict:
+    """The knee's verdict: the worst of its tissues, anatomy, decks and simulation, every reason named."""
+    parts = {**report.get("tissues", {}), **{k: report[k] for k in ("anatomy", "fe", "simulation") if k in report}}
+    reasons = []
+    for name, e in parts.items():
+        if e.get("status") == FAILED:
+            reasons.append(f"{name}: failed: {e.get('reason')}")
+        elif e.get("status") == REVIEW:
+            reasons += [f"{name}: {r}" for r in e.get("reasons", [])]
+    return {"status": worst(e.get("status", OK) for e in parts.values()), "reasons": reasons}
