@@ -237,6 +237,8 @@ def test_batch_of_knees(stack):
     assert len(batch["jobs"]) == 2
     done = wait_for(lambda: (b := c.get(batch["url"], headers=A).json())["done"] and b, 240, "the batch")
     assert done["counts"]["succeeded"] == 2
+    for job in done["jobs"]:  # each knee's verdict and failed tissues, for a cohort to filter on
+        assert job["verdict"]["status"] in ("ok", "review") and job["tissues_failed"] == []
     assert c.get(batch["url"], headers=B).status_code == 404
     # one bad file refuses the whole batch and queues nothing
     before = job_dirs(stack.data)

@@ -16,6 +16,11 @@ class Error(BaseModel):
     details: list[dict] | None = None
 
 
+class Verdict(BaseModel):
+    status: Literal["ok", "review", "failed"]
+    reasons: list[str]
+
+
 class Links(BaseModel):
     self: str
     artifacts: str
@@ -41,11 +46,6 @@ class StepProgress(BaseModel):
     task_id: str | None = Field(None, description="The Celery task that ran the step (Celery mode).")
     worker: str | None = None
     error: Error | None = None
-
-
-class Verdict(BaseModel):
-    status: Literal["ok", "review", "failed"]
-    reasons: list[str]
 
 
 class JobStatus(BaseModel):
@@ -74,6 +74,8 @@ class JobSummary(BaseModel):
     created_at: str
     input_name: str
     url: str
+    verdict: Verdict | None = Field(None, description="The knee's verdict once its report is written.")
+    tissues_failed: list[str] = Field(default_factory=list, description="Tissues with no usable mesh.")
 
 
 class JobList(BaseModel):

@@ -31,8 +31,12 @@ def job_status(request: Request, jobs: Jobs, rec: JobRecord) -> schemas.JobStatu
 
 
 def job_summary(request: Request, jobs: Jobs, rec: JobRecord) -> schemas.JobSummary:
-    return schemas.JobSummary(id=rec.id, state=jobs.state(rec, jobs.steps(rec)), created_at=rec.created_at,
-                              input_name=rec.input_name, url=str(request.url_for("get_job", job_id=rec.id)))
+    steps = jobs.steps(rec)
+    return schemas.JobSummary(id=rec.id, state=jobs.state(rec, steps), created_at=rec.created_at,
+                              input_name=rec.input_name, url=str(request.url_for("get_job", job_id=rec.id)),
+                              verdict=jobs.verdict(rec),
+                              tissues_failed=[s["step"] for s in steps if s["kind"] in ("bone", "cartilage")
+                                              and s["state"] == "done" and s["status"] == "failed"])
 
 
 def job_created(request: Request, jobs: Jobs, rec: JobRecord) -> schemas.JobCreated:
