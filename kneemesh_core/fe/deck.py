@@ -158,7 +158,7 @@ def calculix(m: Model, flexion_deg: float | None = None, max_increment_deg: floa
     outputs += ["*CONTACT PRINT", "CSTR"]
     # step 1: seat the femur on the tibia under the joint load, flexion held at the image pose
     w += ["** step 1: seat under the joint load (the image pose may start with the cartilages apart or overlapping)",
-          "*STEP, NLGEOM, INC=200", "*STATIC", "0.25, 1.0, 1e-6, 0.5", *CONTROLS, "*BOUNDARY",
+          "*STEP, NLGEOM, INC=200", "*STATIC", "0.5, 1.0, 1e-6, 1.0", *CONTROLS, "*BOUNDARY",
           f"{m.ref['tibia']}, 1, 3, 0.0", f"{rot['tibia']}, 1, 3, 0.0", f"{rot['femur']}, 1, 1, 0.0",
           f"{quad}, 1, 2, 0.0", "*BOUNDARY, AMPLITUDE=RAMP", f"{quad}, 3, 3, {QUADRICEPS_DRAW_MM:.6f}",
           "*CLOAD, AMPLITUDE=RAMP", f"{m.ref['femur']}, 3, {-m.load.joint_load_n:.3f}", *outputs, "*END STEP"]
