@@ -193,9 +193,10 @@ def abaqus(m: Model) -> str:
             w += [f"*ELSET, ELSET={b.upper()}_RIGID", ", ".join([f"{b.upper()}_SHELL", *members[b]])]
             w.append(f"*RIGID BODY, ELSET={b.upper()}_RIGID, REF NODE={m.ref[b]}, PIN NSET={b.upper()}_BODY")
         else:  # deformable cartilage: its bone-side nodes (and the ligament ends) ride on the bone
-            deep = sorted({int(n) for t in members[b] for n in m.parts[t.lower()].connectivity[:, :4].ravel()
-                           if True} & set(m.body_nodes[b]) | {n for s in m.springs for n in s.nodes if n in m.body_nodes[b]})
-            w += _set("NSET", f"{b.upper()}_PINS", deep)
+            parts = [m.parts[t.lower()] for t in members[b]]
+            deep = {int(n) for p in parts for n in p.connectivity[np.isin(p.elements, p.bone_side), :4].ravel()}
+            ends = {n for s in m.springs for n in s.nodes} & set(m.body_nodes[b])
+            w += _set("NSET", f"{b.upper()}_PINS", sorted(deep | ends))
             w.append(f"*RIGID BODY, ELSET={b.upper()}_SHELL, REF NODE={m.ref[b]}, PIN NSET={b.upper()}_PINS")
     for b in ("femur", "patella"):
         w += [f"*ELEMENT, TYPE=MASS, ELSET={b.upper()}_MASS", f"{eid}, {m.ref[b]}", f"*MASS, ELSET={b.upper()}_MASS", "1.0e-3",
@@ -234,15 +235,17 @@ def meta(m: Model, flexion_deg: float) -> dict:
 
 
 def write(m: Model, folder: Path, flexion_deg: float | None = None, max_increment_deg: float | None = None,
-          ccx_only: bool = False) -> list[Path]:
-    """Write the decks into ``folder`` (``ccx_only``: the CalculiX wrapper and ``model.json``, for a
-    run of another flexion beside the job's decks); returns their paths."""
+          include: str | None = None) -> list[Path]:
+    """Write the decks into ``folder``; with ``include`` (the path of an existing shared model, from
+    ``folder``) only the CalculiX wrapper and ``model.json``, for a run of another flexion beside the
+    job's decks.  Returns their paths."""
     import json
 
     folder.mkdir(parents=True, exist_ok=True)
     flex = m.load.flexion_deg if flexion_deg is None else flexion_deg
-    files = {CCX_FILE: calculix(m, flex, max_increment_deg), META_FILE: json.dumps(meta(m, flex), indent=1)}
-    if not ccx_only:
+    files = {CCX_FILE: calculix(m, flex, max_increment_deg, include or MODEL_FILE),
+             META_FILE: json.dumps(meta(m, flex), indent=1)}
+    if include is None:
         files = {MODEL_FILE: shared(m), **files, ABAQUS_FILE: abaqus(m)}
     for name, text in files.items():
         atomic_write_text(folder / name, text)

@@ -190,10 +190,9 @@ def build(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
         pts = np.asarray(grid.points)
         art_nodes = np.asarray(grid.point_data["articular"], bool)
         bone_nodes = np.asarray(grid.point_data["bone_side"], bool)
-        thick = np.linalg.norm(pts[art_nodes] - pts[bone_nodes], axis=1) if art_nodes.sum() == bone_nodes.sum() else None
+        thick = np.linalg.norm(pts[art_nodes] - pts[bone_nodes], axis=1)  # the columns: nodes stacked layer by layer
         m.parts[tissue] = Part(tissue, BONE_OF[tissue], elements, lookup[conn], elements[kept_layer == top],
-                               elements[kept_layer == (top if load.cartilage == "rigid" else 0)],
-                               float(np.median(thick)) if thick is not None else 2.0)
+                               elements[kept_layer == (top if load.cartilage == "rigid" else 0)], float(np.median(thick)))
         m.body_nodes[BONE_OF[tissue]].extend(ids.tolist())
     for name, (slave, master) in PAIRS.items():
         m.contact_k[name] = round(CARTILAGE_MODULUS_MPA / (m.parts[slave].thickness_mm + m.parts[master].thickness_mm), 4)
@@ -225,24 +224,23 @@ def build(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
     return m
 
 
-def _articular_mesh(m: Model, tissue: str):
-    """The triangulated articular (S2) faces of a cartilage as a trimesh (Embree rays), and their node ids."""
-    import trimesh
-
+def _articular_faces(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
+    """The articular (S2) faces of a cartilage as quads (Q, 4) of global node ids, and those ids."""
     part = m.parts[tissue]
     quads = part.connectivity[np.searchsorted(part.elements, part.articular)][:, [4, 7, 6, 5]]
-    ids = np.unique(quads)
-    local = np.searchsorted(ids, quads)
-    tris = np.concatenate([local[:, [0, 1, 2]], local[:, [0, 2, 3]]])
-    return trimesh.Trimesh(np.stack([m.nodes[int(i)] for i in ids]), tris, process=False), ids
+    return quads, np.unique(quads)
 
 
 def gaps(m: Model, slave: str, master: str, direction: np.ndarray) -> np.ndarray:
     """Distance (mm) from each articular node of ``slave`` along unit ``direction`` to the articular
     surface of ``master``: negative where the two overlap, NaN where the ray misses it."""
-    surface, _ = _articular_mesh(m, master)
-    _, ids = _articular_mesh(m, slave)
-    pts = np.stack([m.nodes[int(i)] for i in ids])
+    import trimesh
+
+    quads, ids = _articular_faces(m, master)
+    local = np.searchsorted(ids, quads)
+    surface = trimesh.Trimesh(np.stack([m.nodes[int(i)] for i in ids]),  # Embree rays
+                              np.concatenate([local[:, [0, 1, 2]], local[:, [0, 2, 3]]]), process=False)
+    pts = np.stack([m.nodes[int(i)] for i in _articular_faces(m, slave)[1]])
     back = 20.0  # rays start this far behind each node, so an overlap is found too
     locations, index, _ = surface.ray.intersects_location(pts - back * direction, np.tile(direction, (len(pts), 1)),
                                                           multiple_hits=False)

@@ -35,19 +35,15 @@ def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = Fals
     """Run ccx on the job's decks (writing them first if absent); ``results.json`` and ``contact.png``
     land beside the deck that ran.  Returns the results."""
     fe = Path(out_dir) / FE_DIR
+    m = None
     if not (fe / deck.MODEL_FILE).exists():
-        write_decks(out_dir, load)
+        m = build(out_dir, load)
+        deck.write(m, fe)
+    folder = fe
     if smoke or flexion_deg is not None:
         flex, step = SMOKE if smoke else (flexion_deg, load.max_increment_deg)
         folder = fe / ("smoke" if smoke else f"flexion_{flex:g}")
-        m = build(out_dir, load)
-        folder.mkdir(parents=True, exist_ok=True)
-        deck.write(m, folder, flex, step, ccx_only=True)
-        text = (folder / deck.CCX_FILE).read_text().replace(f"*INCLUDE, INPUT={deck.MODEL_FILE}",
-                                                           f"*INCLUDE, INPUT=../{deck.MODEL_FILE}")
-        (folder / deck.CCX_FILE).write_text(text)
-    else:
-        folder = fe
+        deck.write(m or build(out_dir, load), folder, flex, step, include=f"../{deck.MODEL_FILE}")
     meta_file = folder / deck.META_FILE
     if not meta_file.exists():
         raise KneeMeshError("deck_missing", f"{meta_file} is missing: write the decks again (kneemesh mesh).")

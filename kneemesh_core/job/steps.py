@@ -83,10 +83,10 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
     blended and fused onto the bone mesh its bone's step wrote, and its surface
     (``surfaces/<cartilage>.vtp``).
     """
-    t0 = time.perf_counter()
     opts = JobOptions.from_dict(options)
     out = Path(out_dir)
-    try:
+
+    def work() -> dict:
         labels = read_label_map(out / LABELS_FILE).image
         folder = out / MESHES_DIR
         folder.mkdir(exist_ok=True)
@@ -117,13 +117,9 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
                                    f"{facts['frac_edge_ratio_above_6']:.4%} with edge ratio > 6, "
                                    f"{facts['self_intersections']} boundary edges crossing; best mesh kept as {files[0].name}")
         entry["files"] = [str(f.relative_to(out)) for f in files]
-    except KneeMeshError as exc:
-        entry = {"status": "failed", "reason": exc.message, "code": exc.code}
-    except Exception as exc:  # a failed tissue never sinks the rest of the knee
-        entry = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}", "code": "internal",
-                 "traceback": traceback.format_exc(limit=5)}
-    entry["seconds"] = round(time.perf_counter() - t0, 3)
-    return entry
+        return entry
+
+    return _guarded(work)  # a failed tissue never sinks the rest of the knee
 
 
 def shipped_figures(cm: CartilageMesh) -> dict:
@@ -196,13 +192,14 @@ def place_anatomy(out_dir: str | os.PathLike, options: dict) -> dict:
 
 
 def _guarded(work) -> dict:
-    """Run ``work()`` for a step whose failure must not sink the knee: its entry, with the reason."""
+    """Run ``work()`` for a step whose failure must not sink the knee (a tissue, the anatomy, the
+    decks, the simulation): its report entry, or a failed entry with the reason; with its seconds."""
     t0 = time.perf_counter()
     try:
         entry = work()
     except KneeMeshError as exc:
         entry = {"status": "failed", "reason": exc.message, "code": exc.code}
-    except Exception as exc:  # the meshes stay whatever the decks or the solver do
+    except Exception as exc:  # whatever breaks, the rest of the knee goes on
         entry = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}", "code": "internal",
                  "traceback": traceback.format_exc(limit=5)}
     entry["seconds"] = round(time.perf_counter() - t0, 3)
