@@ -100,6 +100,21 @@ def _cross(p, q, a, b):
     return (p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]))
 
 
+def test_the_preload_depth_carries_the_load_by_the_linear_law():
+    """Seating pushes the femur past first touch by d with sum(K max(0, d - gap) A) = load: a flat
+    plateau (every gap 0) gives d = L / (K A); a second plateau 0.2 mm further away shares the load
+    only beyond 0.2 mm; a ray that missed (NaN) carries nothing."""
+    from kneemesh_core.fe.model import preload_depth
+
+    flat, area = np.zeros(100), np.full(100, 2.0)  # 200 mm^2
+    assert preload_depth([flat], [area], [4.0], 1000.0) == pytest.approx(1000.0 / (4.0 * 200.0))
+    far = np.full(100, 0.2)
+    d = preload_depth([flat, far], [area, area], [4.0, 4.0], 1000.0)
+    assert 4.0 * 200.0 * d + 4.0 * 200.0 * (d - 0.2) == pytest.approx(1000.0) and d > 0.2
+    missed = np.concatenate([flat, [np.nan]])
+    assert preload_depth([missed], [np.append(area, 50.0)], [4.0], 1000.0) == pytest.approx(1.25)
+
+
 def test_a_missing_ccx_and_a_skipped_card_are_clear_errors(tmp_path, monkeypatch):
     (tmp_path / "bad.inp").write_text("*HEADING\nx\n*PART, NAME=P\n*NODE\n1, 0, 0, 0\n*STEP\n*STATIC\n*END STEP\n")
     with pytest.raises(KneeMeshError) as e:
@@ -186,6 +201,6 @@ def test_a_run_whose_femur_loses_the_tibia_is_not_completed():
                 "balance_error": err}
 
     good = [inc(0.5, 0.0, 0.0, 0.7), inc(1.0, 0.0, 1100.0, 0.004), inc(1.5, 45.0, 1150.0, 0.005)]
-    assert first_invalid(good) is None  # the rising load of the seating step is not judged
+    assert first_invalid(good) is None  # the seating step is judged at its end only
     reason = first_invalid(good + [inc(1.8, 72.0, 0.0, 0.88)])
     assert reason and "72.0 deg" in reason and "lost the tibia" in reason

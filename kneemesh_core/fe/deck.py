@@ -36,6 +36,11 @@ PER_LINE = 16
 CONTROLS = ("*CONTROLS, PARAMETERS=FIELD", "0.005, 0.01, 100.0, 100.0")
 
 
+def rot_nodes(m: Model) -> dict[str, int]:
+    """The ROT node of each moving rigid body in the ccx deck (the tibia is held, not a rigid body)."""
+    return {b: m.next_id + i for i, b in enumerate(("femur", "patella"))}
+
+
 def _ids(ids) -> list[str]:
     ids = [int(i) for i in ids]
     return [", ".join(str(i) for i in ids[k:k + PER_LINE]) for k in range(0, len(ids), PER_LINE)]
@@ -101,7 +106,7 @@ def shared(m: Model) -> str:
         w += [f"** {name}: K = E / (h_{slave} + h_{master}) = 10 MPa / ({m.parts[slave].thickness_mm:.3f} + "
               f"{m.parts[master].thickness_mm:.3f} mm) = {k:.4f} N/mm^3",
               f"*SURFACE INTERACTION, NAME=CONTACT_{name.upper()}", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", f"{k:.6f}"]
-    w += ["*AMPLITUDE, NAME=RAMP", "0.0, 0.0, 1.0, 1.0"]
+    w += ["*AMPLITUDE, NAME=RAMP", "0.0, 0.0, 1.0, 1.0", "*AMPLITUDE, NAME=HOLD", "0.0, 1.0, 1.0, 1.0"]
     return "\n".join(w) + "\n"
 
 
@@ -118,12 +123,12 @@ def calculix(m: Model, flexion_deg: float | None = None, max_increment_deg: floa
     """``knee_ccx.inp``: seat under the joint load, then flex the femur about X."""
     flex = m.load.flexion_deg if flexion_deg is None else flexion_deg
     step = m.load.max_increment_deg if max_increment_deg is None else max_increment_deg
-    rot = {b: m.next_id + i for i, b in enumerate(BONES)}
+    rot = rot_nodes(m)
     w = ["*HEADING", f"KneeMesh {__version__} knee, CalculiX dialect: rigid bodies, {flex:g} deg flexion under "
          f"{m.load.joint_load_n:g} N", f"*INCLUDE, INPUT={include}", "*NODE"]
-    w += [f"{rot[b]}, " + ", ".join(f"{c:.6f}" for c in m.nodes[m.ref[b]]) for b in BONES]
-    for b in BONES:
-        w.append(f"*RIGID BODY, NSET={b.upper()}_BODY, REF NODE={m.ref[b]}, ROT NODE={rot[b]}")
+    w += [f"{n}, " + ", ".join(f"{c:.6f}" for c in m.nodes[m.ref[b]]) for b, n in rot.items()]
+    for b, n in rot.items():
+        w.append(f"*RIGID BODY, NSET={b.upper()}_BODY, REF NODE={m.ref[b]}, ROT NODE={n}")
     w += _pair_lines("TYPE=SURFACE TO SURFACE")
     # weak springs to ground on the free degrees of freedom of the femur and the patella
     stab = []
@@ -137,8 +142,7 @@ def calculix(m: Model, flexion_deg: float | None = None, max_increment_deg: floa
             eid += 1
     for e, node, dof, k in stab:
         w += [f"*ELEMENT, TYPE=SPRING1, ELSET=STAB_{e}", f"{e}, {node}", f"*SPRING, ELSET=STAB_{e}", str(dof), f"{k:.6e}"]
-    w += [f"*NSET, NSET=FEMUR_REF\n{m.ref['femur']}", f"*NSET, NSET=TIBIA_REF\n{m.ref['tibia']}",
-          f"*NSET, NSET=ROTS\n{', '.join(str(rot[b]) for b in BONES)}"]
+    w += [f"*NSET, NSET=FEMUR_REF\n{m.ref['femur']}", f"*NSET, NSET=ROTS\n{', '.join(str(n) for n in rot.values())}"]
     # the quadriceps' origin turns with the femur's flexion about the femur's reference node
     quad = m.quadriceps.nodes[1]
     centre = m.nodes[m.ref["femur"]]
@@ -151,17 +155,19 @@ def calculix(m: Model, flexion_deg: float | None = None, max_increment_deg: floa
         return [f"*AMPLITUDE, NAME={name}", *(", ".join(flat[k:k + 4]) for k in range(0, len(flat), 4))]
 
     w += table("QUAD_Y", -r * np.sin(angles) - centre[1]) + table("QUAD_Z", centre[2] + r * np.cos(angles) - QUADRICEPS_ORIGIN_MM)
-    outputs = ["*NODE PRINT, NSET=REFS", "U", "*NODE PRINT, NSET=ROTS", "U", "*NODE PRINT, NSET=TIBIA_REF", "RF",
+    outputs = ["*NODE PRINT, NSET=REFS", "U", "*NODE PRINT, NSET=ROTS", "U", "*NODE PRINT, NSET=TIBIA_BODY, TOTALS=ONLY", "RF",
                "*NODE PRINT, NSET=LIGAMENT_ENDS", "U"]
     for name, (slave, master) in PAIRS.items():
         outputs += [f"*CONTACT PRINT, SLAVE={slave.upper()}_ARTICULAR, MASTER={master.upper()}_ARTICULAR", "CF"]
     outputs += ["*CONTACT PRINT", "CSTR"]
-    # step 1: seat the femur on the tibia under the joint load, flexion held at the image pose
-    w += ["** step 1: seat under the joint load (the image pose may start with the cartilages apart or overlapping)",
-          "*STEP, NLGEOM, INC=200", "*STATIC", "0.5, 1.0, 1e-6, 1.0", *CONTROLS, "*BOUNDARY",
-          f"{m.ref['tibia']}, 1, 3, 0.0", f"{rot['tibia']}, 1, 3, 0.0", f"{rot['femur']}, 1, 1, 0.0",
+    # step 1: the femur, seated at the depth that carries the joint load (model.seat), takes the whole
+    # load at once while the quadriceps is drawn up; flexion held at the image pose.  The tibia is
+    # fixed: its nodes are held (a rigid body held still, without ccx's three MPCs a node)
+    w += ["** step 1: settle under the joint load from the seated pose, the quadriceps drawn up",
+          "*STEP, NLGEOM, INC=200", "*STATIC", "1.0, 1.0, 1e-6, 1.0", *CONTROLS, "*BOUNDARY",
+          "TIBIA_BODY, 1, 3, 0.0", f"{m.ref['tibia']}, 1, 3, 0.0", f"{rot['femur']}, 1, 1, 0.0",
           f"{quad}, 1, 2, 0.0", "*BOUNDARY, AMPLITUDE=RAMP", f"{quad}, 3, 3, {QUADRICEPS_DRAW_MM:.6f}",
-          "*CLOAD, AMPLITUDE=RAMP", f"{m.ref['femur']}, 3, {-m.load.joint_load_n:.3f}", *outputs, "*END STEP"]
+          "*CLOAD, AMPLITUDE=HOLD", f"{m.ref['femur']}, 3, {-m.load.joint_load_n:.3f}", *outputs, "*END STEP"]
     # step 2: flex the femur about X, the joint load held; whole increments (rounded up, so that
     # ccx adds no sliver of an increment at the end)
     n = int(np.ceil(flex / min(step, flex) - 1e-9))
@@ -225,7 +231,7 @@ def meta(m: Model, flexion_deg: float) -> dict:
         "pairs": {name: f"{slave.upper()}_ARTICULAR" for name, (slave, _) in PAIRS.items()},
         "slave_elements": {name: [int(m.parts[slave].elements[0]), int(m.parts[slave].elements[-1])]
                            for name, (slave, _) in PAIRS.items()},
-        "ref": {b: m.ref[b] for b in BONES}, "rot": {b: m.next_id + i for i, b in enumerate(BONES)},
+        "ref": {b: m.ref[b] for b in BONES}, "rot": rot_nodes(m),
         "stabiliser_n_mm": STABILISER_N_MM,
         "fibres": [{"name": s.name, "bundle": s.bundle, "k": s.stiffness_n, "slack": s.slack_length_mm,
                     "nodes": list(s.nodes), "start": [m.nodes[s.nodes[0]].tolist(), m.nodes[s.nodes[1]].tolist()],

@@ -24,8 +24,9 @@ so that a slack fibre leaves no singular tangent.
 
 **Seating.** The image pose may start with the cartilages apart or overlapping (0.3-0.6 mm on
 real OA knees); :func:`seat` moves the femur along Z until its cartilage just touches the tibial
-cartilage and the patella along its anterior axis until it just touches the femoral cartilage,
-and reports the overlaps it removed.
+cartilage, then on by the depth at which the contact law carries the joint load (the solver starts
+next to equilibrium, not from a touch that carries nothing), and the patella along its anterior
+axis until it just touches the femoral cartilage; it reports the overlaps it removed.
 
 **Loads.** The tibia fixed; a compressive joint load on the femur along -Z; a quadriceps force
 on the patella from a point up the femoral shaft that is drawn up first (the force rises to its
@@ -254,18 +255,46 @@ def _move(m: Model, body: str, shift: np.ndarray) -> None:
         m.nodes[int(n)] = m.nodes[int(n)] + shift
 
 
+def _node_areas(m: Model, tissue: str) -> np.ndarray:
+    """Tributary area (mm^2) of each articular node of ``tissue`` (a quarter of each quad it is a
+    corner of), in the order of :func:`_articular_faces`'s ids."""
+    quads, ids = _articular_faces(m, tissue)
+    p = np.stack([m.nodes[int(i)] for i in ids])[np.searchsorted(ids, quads)]  # (Q, 4, 3)
+    area = 0.5 * (np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+                  + np.linalg.norm(np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]), axis=1))
+    return np.bincount(np.searchsorted(ids, quads).ravel(), np.repeat(area / 4, 4), minlength=len(ids))
+
+
+def preload_depth(gaps_mm: list[np.ndarray], areas_mm2: list[np.ndarray], k_n_mm3: list[float], load_n: float) -> float:
+    """How far (mm) a rigid body must move along the gaps' direction, from first touch, for linear
+    pressure-overclosure contact (p = K d on each node's area) to carry ``load_n``.  Gaps (mm, NaN
+    where a ray missed) are measured from the first touch; bisection on a monotone force."""
+    def force(d: float) -> float:
+        return sum(k * float(np.sum(a * np.clip(d - np.nan_to_num(g, nan=np.inf), 0.0, None)))
+                   for g, a, k in zip(gaps_mm, areas_mm2, k_n_mm3))
+
+    lo, hi = 0.0, 5.0
+    if force(hi) < load_n:
+        return hi
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if force(mid) < load_n else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
 def seat(m: Model) -> dict:
     """Seat the bones before any load: the femur moves along Z until its cartilage just touches the
-    tibial cartilage (down across a gap, up out of an overlap), then the patella along its anterior
-    axis until it just touches the femoral cartilage.  A solver cannot start from an overclosure of
-    rigid cartilage; the overlaps of the image pose are reported."""
+    tibial cartilage (down across a gap, up out of an overlap) and then on by the depth at which the
+    contact carries the joint load (:func:`preload_depth`), so that the solver starts next to
+    equilibrium; then the patella along its anterior axis until it just touches the femoral
+    cartilage.  The overlaps of the image pose are reported."""
     z = np.array([0.0, 0.0, 1.0])
-    before = {}
-    for pair in ("medial", "lateral"):
-        g = gaps(m, PAIRS[pair][0], PAIRS[pair][1], z)
-        before[pair] = g
+    before = {pair: gaps(m, PAIRS[pair][0], PAIRS[pair][1], z) for pair in ("medial", "lateral")}
     g = np.concatenate(list(before.values()))
-    femur_shift = -float(np.nanmin(g)) if np.isfinite(g).any() else 0.0
+    touch = -float(np.nanmin(g)) if np.isfinite(g).any() else 0.0
+    depth = preload_depth([v + touch for v in before.values()],
+                          [_node_areas(m, PAIRS[p][0]) for p in before], [m.contact_k[p] for p in before], m.load.joint_load_n)
+    femur_shift = touch - depth
     _move(m, "femur", femur_shift * z)
     toward = -m.patella_anterior  # the patella's articular side faces posterior, towards the trochlea
     pf = gaps(m, "patellar_cartilage", "femoral_cartilage", toward)
@@ -283,4 +312,5 @@ def seat(m: Model) -> dict:
     return {"initial_overlap_mm": {"medial": overlap(before["medial"]), "lateral": overlap(before["lateral"]),
                                    "patellofemoral": overlap(pf_before)},
             "initial_overlap_nodes": {k: int((v < 0).sum()) for k, v in (*before.items(), ("patellofemoral", pf_before))},
-            "femur_shift_mm": round(femur_shift, 3), "patella_shift_mm": round(patella_shift, 3)}
+            "femur_shift_mm": round(femur_shift, 3), "preload_depth_mm": round(depth, 3),
+            "patella_shift_mm": round(patella_shift, 3)}

@@ -19,12 +19,12 @@ import numpy as np
 from kneemesh_core.fe.model import TRANSITION_STRAIN
 
 _STATS = re.compile(r"^\s*statistics for slave set (\S+), master set (\S+) and time\s+(\S+)")
-_TABLE = re.compile(r"^\s*(displacements|forces|contact stress)\b.*?(?:for set (\S+)|for all contact elements)\s+and time\s+(\S+)")
+_TABLE = re.compile(r"^\s*(displacements|forces|total force|contact stress)\b.*?(?:for set (\S+)|for all contact elements)\s+and time\s+(\S+)")
 
 
 def parse_dat(path: Path) -> dict:
     """{"contact": {time: {slave: {force, area, normal_force}}}, "stress": {time: [(element, pressure)]},
-    "nodes": {(table, set): {time: {node: (3,)}}}}."""
+    "nodes": {(table, set): {time: {node or "total": (3,)}}}}."""
     contact: dict = defaultdict(dict)
     stress: dict = defaultdict(list)
     nodes: dict = defaultdict(lambda: defaultdict(dict))
@@ -52,6 +52,8 @@ def parse_dat(path: Path) -> dict:
             parts = line.split()
             if current[0] == "contact stress":
                 stress[current[2]].append((int(parts[0]), float(parts[2])))
+            elif current[0] == "total force":  # a set's summed reaction: no node id
+                nodes[(current[0], current[1])][current[2]]["total"] = np.array([float(p) for p in parts[:3]])
             else:
                 nodes[(current[0], current[1])][current[2]][int(parts[0])] = np.array([float(p) for p in parts[1:4]])
         i += 1
@@ -78,7 +80,7 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
     out = []
     for t in sorted(dat["contact"]):
         row: dict = {"time": t, "flexion_deg": round(float(np.degrees(rots[t][meta["rot"]["femur"]][0])), 3) if t in rots else None}
-        femur_force = np.array([0.0, 0.0, -meta["joint_load_n"] * min(t, 1.0)])  # ramped over step 1
+        femur_force = np.array([0.0, 0.0, -meta["joint_load_n"]])  # whole from the start of step 1
         pressures = dat["stress"].get(t, [])
         for name, slave in pairs.items():
             c = dat["contact"][t].get(slave, {"force": [0, 0, 0], "area": 0.0, "normal_force": 0.0})
@@ -119,7 +121,7 @@ def first_invalid(increments: list[dict]) -> str | None:
     lost the tibia (no tibiofemoral contact under the joint load) and whose forces do not balance."""
     for r in increments:
         if r["time"] < 1.0:
-            continue  # the load is still rising; only the end of the seating step is checked
+            continue  # only the end of the seating step is trusted (ccx's cut-back increments are not)
         tf = r["medial"]["force_n"] + r["lateral"]["force_n"]
         if r["balance_error"] > MAX_BALANCE_ERROR or tf <= 0:
             return (f"at {r['flexion_deg']:.1f} deg of flexion the femur's forces no longer balance the joint load "
