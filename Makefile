@@ -1,6 +1,6 @@
 # KneeMesh: two commands on a fresh machine.
 #   make demo   set up .venv and CalculiX if needed and run the main job on the bundled sample knee
-#   make test   set up .venv with the test and training extras, and CalculiX, and run the whole test suite
+#   make test   set up .venv with the test and training extras, CalculiX and a headless Chromium, and run the whole test suite
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -9,7 +9,7 @@ DEMO_OUT ?= demo-output
 # One text encoding whatever the locale (CI runs with an ASCII one).
 export PYTHONUTF8 = 1
 
-.PHONY: demo test bench clean venv ccx
+.PHONY: demo test bench clean venv ccx browser
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -31,12 +31,19 @@ ccx:
 	  else echo "CalculiX is missing: run  sudo apt-get install calculix-ccx  (Debian/Ubuntu), then make again." >&2; exit 1; fi; }
 	@ccx -v 2>/dev/null | grep -m1 Version || true
 
+# A real browser opens the cohort report in the tests: Chromium's headless shell, the same way.
+browser:
+	@command -v chromium-headless-shell >/dev/null 2>&1 || command -v chromium >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium-headless-shell >/dev/null; \
+	  else echo "Chromium is missing: run  sudo apt-get install chromium-headless-shell  (Debian/Ubuntu), then make again." >&2; exit 1; fi; }
+
 demo: $(STAMP) ccx
 	$(VENV)/bin/kneemesh inspect kneemesh/data/right_knee_example.nrrd
 	$(VENV)/bin/kneemesh mesh kneemesh/data/right_knee_example.nrrd --out $(DEMO_OUT) --simulate smoke
 	@echo "Outputs are in $(abspath $(DEMO_OUT)): meshes/, attachments.json/.png, fe/ (decks; smoke/ results.json, contact.png), report.json."
 
-test: $(STAMP) ccx
+test: $(STAMP) ccx browser
 	$(PY) -m pytest -n 2 --dist loadgroup -q
 
 bench: $(STAMP)

@@ -10,6 +10,7 @@ report progress the same way, and a restarted API loses nothing.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import datetime as dt
 import json
 import time
@@ -126,15 +127,35 @@ class Jobs:
             return "running"
         return "queued"
 
-    def queue_position(self, rec: JobRecord) -> int:
+    def queue_position(self, rec: JobRecord) -> int | None:
         """1 for the next job to start: queued jobs of every owner created before this one, plus one."""
-        ahead = 0
+        return self.queue_positions([rec.id]).get(rec.id)
+
+    # repeated submissions
+    def _key_file(self, owner: str, key: str) -> Path:
+        return self.store.root / "idempotency" / (hashlib.sha256(f"{owner}\0{key}".encode()).hexdigest() + ".json")
+
+    def by_key(self, owner: str, key: str) -> JobRecord | None:
+        """The live job this owner already created with ``key`` (an ``Idempotency-Key``), if any."""
+        try:
+            rec = self.get(json.loads(self._key_file(owner, key).read_text())["job"])
+        except (FileNotFoundError, json.JSONDecodeError, KeyError):
+            return None
+        return rec if rec is not None and not rec.deleted else None
+
+    def remember_key(self, owner: str, key: str, job_id: str) -> None:
+        atomic_write_json(self._key_file(owner, key), {"job": job_id, "created_at": utc_now()})
+
+    def queue_positions(self, ids: list[str]) -> dict[str, int]:
+        """Queue positions of the given jobs in one pass (1 = next to start): queued jobs of every
+        owner created before each, plus one; jobs not queued are left out."""
+        wanted, ahead, out = set(ids), 0, {}
         for other in self.all():
-            if other.id == rec.id:
-                break
             if self.state(other, self.steps(other)) == "queued":
                 ahead += 1
-        return ahead + 1
+                if other.id in wanted:
+                    out[other.id] = ahead
+        return out
 
     # batches
     def save_batch(self, batch_id: str, owner: str, job_ids: list[str]) -> None:

@@ -18,7 +18,7 @@ import pyvista as pv
 import SimpleITK as sitk
 from fastapi.testclient import TestClient
 
-from conftest import OAI, PYMSKT_RIGHT, ROOT, SAMPLE, real
+from conftest import OAI, PYMSKT_RIGHT, SAMPLE, real
 from kneemesh_core.segmentation.infer import DEFAULT_MODEL
 from service_helpers import RedisServer, Worker, free_port, poll, wait_for
 from services.api import create_app
@@ -235,10 +235,18 @@ def test_batch_of_knees(stack):
     assert r.status_code == 202, r.text
     batch = r.json()
     assert len(batch["jobs"]) == 2
+    positions = [j["queue_position"] for j in batch["jobs"]]
+    assert positions[0] >= 1 and positions[1] > positions[0]  # taken together, strictly increasing
     done = wait_for(lambda: (b := c.get(batch["url"], headers=A).json())["done"] and b, 240, "the batch")
     assert done["counts"]["succeeded"] == 2
     for job in done["jobs"]:  # each knee's verdict and failed tissues, for a cohort to filter on
         assert job["verdict"]["status"] in ("ok", "review") and job["tissues_failed"] == []
+    manifest = c.get(batch["url"] + "/manifest", headers=A).json()
+    assert manifest["done"] and [j["id"] for j in manifest["jobs"]] == [j["id"] for j in batch["jobs"]]
+    for job in manifest["jobs"]:  # every artifact's url and sha256: what a client downloads and checks
+        femur = next(a for a in job["artifacts"] if a["name"] == "meshes/femur.vtp")
+        assert hashlib.sha256(c.get(femur["url"], headers=A).content).hexdigest() == femur["sha256"]
+    assert c.get(batch["url"] + "/manifest", headers=B).status_code == 404
     assert c.get(batch["url"], headers=B).status_code == 404
     # one bad file refuses the whole batch and queues nothing
     before = job_dirs(stack.data)

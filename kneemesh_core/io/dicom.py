@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import numpy as np
 import SimpleITK as sitk
 
 from kneemesh_core.errors import KneeMeshError
@@ -16,6 +17,8 @@ _TAGS = {
     "modality": "0008|0060",
     "body_part": "0018|0015",
     "protocol_name": "0018|1030",
+    "acquisition_type": "0018|0023",
+    "orientation": "0020|0037",
 }
 
 
@@ -40,7 +43,7 @@ def meta_from_reader(reader) -> dict:
     return meta
 
 
-def _series_meta(first_file: str) -> dict:
+def series_meta(first_file: str) -> dict:
     r = sitk.ImageFileReader()
     r.SetFileName(first_file)
     r.LoadPrivateTagsOn()
@@ -56,6 +59,21 @@ def _is_dess(meta: dict) -> bool:
     return bool(re.search(r"DESS", text))
 
 
+def is_sagittal_3d_dess(meta: dict) -> bool:
+    """A DESS series acquired in 3D with sagittal slices (the slice normal, row x column direction,
+    within 35 deg of the patient's left-right axis); a header that omits a fact does not rule it out."""
+    if not _is_dess(meta) or meta.get("acquisition_type", "3D").upper() not in ("3D", ""):
+        return False
+    try:
+        row_col = [float(v) for v in meta.get("orientation", "").split("\\")]
+    except ValueError:
+        return True
+    if len(row_col) != 6:
+        return True
+    normal = np.cross(row_col[:3], row_col[3:])
+    return bool(abs(normal[0]) >= np.cos(np.radians(35.0)) * np.linalg.norm(normal))
+
+
 def read_series(folder: Path, label: str | None = None) -> tuple[sitk.Image, dict]:
     """Read one DICOM series from a folder tree.
 
@@ -69,7 +87,7 @@ def read_series(folder: Path, label: str | None = None) -> tuple[sitk.Image, dic
         for sid in sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(d)) or ():
             files = list(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(d), sid))
             if files:
-                series.append((sid, files, _series_meta(files[0])))
+                series.append((sid, files, series_meta(files[0])))
     if not series:
         raise KneeMeshError(
             "not_an_image",

@@ -108,6 +108,20 @@ class BatchStatus(BaseModel):
     jobs: list[JobSummary]
 
 
+class ManifestEntry(BaseModel):
+    id: str
+    input_name: str
+    state: State
+    verdict: Verdict | None = None
+    artifacts: list[Artifact] = Field(description="Every file of the job with its SHA-256 (empty until it has succeeded).")
+
+
+class BatchManifest(BaseModel):
+    id: str
+    done: bool = Field(description="Every job of the batch has finished.")
+    jobs: list[ManifestEntry]
+
+
 class Health(BaseModel):
     status: str
     version: str

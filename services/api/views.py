@@ -39,6 +39,10 @@ def job_summary(request: Request, jobs: Jobs, rec: JobRecord) -> schemas.JobSumm
                                               and s["state"] == "done" and s["status"] == "failed"])
 
 
-def job_created(request: Request, jobs: Jobs, rec: JobRecord) -> schemas.JobCreated:
-    return schemas.JobCreated(id=rec.id, state="queued", queue_position=jobs.queue_position(rec),
+def job_created(request: Request, jobs: Jobs, rec: JobRecord, position: int | None = None) -> schemas.JobCreated:
+    """A new (or repeated) job's answer; ``position`` when the caller took it before queueing."""
+    state = jobs.state(rec, jobs.steps(rec))
+    if position is None and state == "queued":
+        position = jobs.queue_position(rec)
+    return schemas.JobCreated(id=rec.id, state=state, queue_position=position if state == "queued" else None,
                               urls=links(request, rec.id))

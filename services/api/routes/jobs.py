@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Header, Request, UploadFile
 
 from kneemesh_core.job import JobRequest
 from services.api import deps, schemas
@@ -21,10 +21,19 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=ERRORS)
 async def create_job(request: Request, file: Annotated[UploadFile, File(description="The label map or image.")],
                      options: Annotated[JobRequest, Form()], who: str = Depends(deps.owner),
                      jobs: Jobs = Depends(deps.jobs), metrics: Metrics = Depends(deps.metrics),
-                     runner=Depends(deps.runner)):
+                     runner=Depends(deps.runner),
+                     idempotency_key: Annotated[str | None, Header(
+                         alias="Idempotency-Key", max_length=200,
+                         description="A client's name for this submission: repeating it returns the job it created "
+                                     "instead of queueing a second one (a client that crashed before recording "
+                                     "the answer can safely submit again).")] = None):
     """Upload one knee and queue its job; the input is validated first, and a bad one queues nothing."""
+    if idempotency_key and (known := jobs.by_key(who, idempotency_key)) is not None:
+        return job_created(request, jobs, known)
     rec = await accept(jobs, metrics, file, options, who, None)
     enqueue(jobs, metrics, runner, rec)
+    if idempotency_key:
+        jobs.remember_key(who, idempotency_key, rec.id)
     return job_created(request, jobs, rec)
 
 

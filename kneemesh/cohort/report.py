@@ -1,0 +1,195 @@
+"""``kneemesh report OUT``: one self-contained HTML page over a cohort tree (every folder holding a
+``report.json``; a ``kneemesh submit`` state file adds the knees that never came home).
+
+Verdicts and success rates, per-tissue quality and fidelity distributions, timings, failures with
+their reasons, contact curves across knees; figures are matplotlib PNGs embedded as data URIs, so the
+file reads offline and travels as one attachment.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as dt
+import html
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from kneemesh.cohort.submit import DONE, STATE_FILE
+from kneemesh_core import __version__
+from kneemesh_core.io.files import atomic_write_text
+from kneemesh_core.job import REPORT_FILE
+from kneemesh_core.tissues import CARTILAGES, TISSUES
+
+REPORT_HTML = "report.html"
+RESULTS = ("fe/results.json", "fe/smoke/results.json")
+
+
+def collect(root: Path) -> dict:
+    """Every knee under ``root``: {"knees": {id: report}, "results": {id: results}, "lost": {id: record}}."""
+    knees, results = {}, {}
+    for f in sorted(root.rglob(REPORT_FILE)):
+        if ".partial" in f.parent.name or not (f.parent / "job.json").exists():
+            continue  # a download in progress, or a step record named report.json
+        kid = f.parent.relative_to(root).as_posix()
+        knees[kid] = json.loads(f.read_text())
+        for name in RESULTS:
+            if (f.parent / name).exists():
+                results[kid] = json.loads((f.parent / name).read_text())
+                break
+    lost = {}
+    if (root / STATE_FILE).exists():
+        state = json.loads((root / STATE_FILE).read_text())
+        lost = {k: v for k, v in state.get("knees", {}).items() if v.get("state") != DONE and k not in knees}
+        for k, v in state.get("knees", {}).items():
+            if k in knees and v.get("job_seconds"):
+                knees[k].setdefault("_timing", {})["job_seconds"] = v["job_seconds"]
+    return {"knees": knees, "results": results, "lost": lost}
+
+
+def _png(fig) -> str:
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=80)
+    plt.close(fig)
+    return f'<img alt="figure" src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode()}">'
+
+
+def _quality_figure(knees: dict) -> str | None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = [("min_scaled_jacobian", "min scaled Jacobian"), ("coverage", "coverage of the labels"),
+            ("volume_error", "volume error (fraction)")]
+    data = {c: [[r["tissues"][t][c] for r in knees.values() if isinstance(r["tissues"].get(t, {}).get(c), (int, float))]
+                for t in CARTILAGES] for c, _ in cols}
+    if not any(any(v) for v in data.values()):
+        return None
+    fig, axs = plt.subplots(1, 3, figsize=(13, 3.6))
+    for ax, (c, label) in zip(axs, cols):
+        ax.boxplot([v or [np.nan] for v in data[c]], showfliers=True)
+        ax.set_xticks(range(1, len(CARTILAGES) + 1), [t.split("_")[0] for t in CARTILAGES], fontsize=8)
+        ax.set_title(label, fontsize=10)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _timing_figure(seconds: list[float]) -> str | None:
+    if not seconds:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3))
+    ax.hist(seconds, bins=min(30, max(5, len(seconds))))
+    ax.set_xlabel("job time, s (sum of its steps)")
+    ax.set_ylabel("knees")
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _contact_figure(results: dict) -> str | None:
+    if not results:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axs = plt.subplots(1, 2, figsize=(11, 3.6), sharey=True)
+    for r in results.values():
+        inc = [i for i in r["increments"] if i["time"] >= 1.0]
+        for ax, side in zip(axs, ("medial", "lateral")):
+            ax.plot([i["flexion_deg"] for i in inc], [i[side]["force_n"] for i in inc], alpha=0.6, lw=1)
+    for ax, side in zip(axs, ("medial", "lateral")):
+        ax.set_title(f"{side} tibiofemoral contact force", fontsize=10)
+        ax.set_xlabel("flexion, deg")
+        ax.grid(alpha=0.3)
+    axs[0].set_ylabel("N")
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _table(head: list[str], rows: list[list]) -> str:
+    th = "".join(f"<th>{html.escape(h)}</th>" for h in head)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><thead><tr>{th}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _median_min(values: list) -> str:
+    v = [x for x in values if isinstance(x, (int, float))]
+    return f"{np.median(v):.3f} ({min(v):.3f})" if v else ""
+
+
+def render(root: Path, data: dict) -> str:
+    knees, results, lost = data["knees"], data["results"], data["lost"]
+    total = len(knees) + len(lost)
+    verdicts = {s: sum(r.get("verdict", {}).get("status") == s for r in knees.values()) for s in ("ok", "review", "failed")}
+    headline = [["knees", total], ["verdict ok", verdicts["ok"]], ["verdict review", verdicts["review"]],
+                ["verdict failed", verdicts["failed"]], ["never came home (rejected, failed or unfinished jobs)", len(lost)],
+                ["usable models (ok or review) of all knees", f"{(verdicts['ok'] + verdicts['review']) / total:.1%}" if total else ""]]
+    if results:
+        done = sum(bool(r.get("completed")) for r in results.values())
+        headline.append(["simulations completed", f"{done}/{len(results)}"])
+    tissue_rows = []
+    for t in TISSUES:
+        entries = [r["tissues"][t] for r in knees.values() if t in r.get("tissues", {})]
+        counts = {s: sum(e.get("status") == s for e in entries) for s in ("ok", "review", "failed")}
+        if t in CARTILAGES:
+            q = [_median_min([e.get("min_scaled_jacobian") for e in entries]), _median_min([e.get("coverage") for e in entries]),
+                 _median_min([abs(e["volume_error"]) if isinstance(e.get("volume_error"), (int, float)) else None for e in entries])]
+        else:
+            q = ["", "", _median_min([(e.get("surface_distance_mm") or {}).get("p95") for e in entries])]
+        tissue_rows.append([t, len(entries), counts["ok"], counts["review"], counts["failed"], *q])
+    failures = []
+    for kid, r in knees.items():
+        for t, e in r.get("tissues", {}).items():
+            if e.get("status") in ("failed", "review"):
+                failures.append([kid, t, e["status"], "; ".join(e.get("reasons") or [e.get("reason") or ""])])
+        for stage in ("anatomy", "fe", "simulation"):
+            if isinstance(r.get(stage), dict) and r[stage].get("status") == "failed":
+                failures.append([kid, stage, "failed", r[stage].get("reason", "")])
+    for kid, v in lost.items():
+        failures.append([kid, "job", v.get("state", "unfinished"), v.get("reason") or v.get("last_error") or ""])
+    seconds = [r["_timing"]["job_seconds"] for r in knees.values() if "_timing" in r] or \
+              [sum(e.get("seconds") or 0.0 for e in r.get("tissues", {}).values()) for r in knees.values()]
+    per_knee = [[kid, r.get("input", {}).get("side", ""), r.get("verdict", {}).get("status", ""),
+                 "; ".join(r.get("verdict", {}).get("reasons", []))] for kid, r in knees.items()]
+    figures = [("Cartilage quality and fidelity", _quality_figure(knees)), ("Timings", _timing_figure(seconds)),
+               ("Contact across knees", _contact_figure(results))]
+    parts = [f"<h1>KneeMesh cohort report</h1><p class=meta>{html.escape(str(root))} &middot; {total} knees &middot; "
+             f"KneeMesh {__version__} &middot; {dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC</p>",
+             "<h2>Verdicts</h2>", _table(["", "value"], headline),
+             "<h2>Tissues</h2>", _table(["tissue", "knees", "ok", "review", "failed", "min SJ median (min)",
+                                         "coverage median (min)", "|volume error| or bone p95 distance mm, median (min)"],
+                                        tissue_rows)]
+    if seconds:
+        parts.append(f"<p>Job time: median {np.median(seconds):.1f} s, slowest {max(seconds):.1f} s.</p>")
+    for title, fig in figures:
+        if fig:
+            parts += [f"<h2>{title}</h2>", fig]
+    parts += ["<h2>Failures and reviews</h2>",
+              _table(["knee", "what", "status", "reasons"], failures) if failures else "<p>None.</p>",
+              "<h2>Every knee</h2>", _table(["knee", "side", "verdict", "reasons"], per_knee)]
+    style = ("body{font-family:sans-serif;margin:2em;max-width:1200px}table{border-collapse:collapse;margin:1em 0}"
+             "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px;text-align:left}th{background:#eee}"
+             "img{max-width:100%}.meta{color:#666}")
+    return (f"<!DOCTYPE html><html lang=en><head><meta charset=utf-8><title>KneeMesh cohort report</title>"
+            f"<style>{style}</style></head><body>{''.join(parts)}</body></html>")
+
+
+def write_report(root: Path, out_file: Path | None = None) -> Path:
+    """Write the cohort's HTML report (default ``root/report.html``) and return its path."""
+    root = Path(root)
+    data = collect(root)
+    path = Path(out_file) if out_file else root / REPORT_HTML
+    atomic_write_text(path, render(root, data))
+    return path
