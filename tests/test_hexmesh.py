@@ -12,7 +12,7 @@ import SimpleITK as sitk
 from conftest import OAI, PYMSKT_LEFT, SAMPLE, real
 from kneemesh_core.hexmesh import mesh_cartilage
 from kneemesh_core.hexmesh.optimize import layer_quality
-from kneemesh_core.hexmesh.quality import hex_quality, passes_gate, to_grid
+from kneemesh_core.hexmesh.quality import hex_quality, passes_gate
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.knee import load_knee
 from kneemesh_core.job import JobOptions, run
@@ -200,3 +200,21 @@ def test_a_hollow_or_unblended_cartilage_is_review_with_its_reasons_never_ok():
     verdict = knee_verdict(report)
     assert verdict["status"] == "failed" and "patella: failed: no patella" in verdict["reasons"]
     assert any(r.startswith("femoral_cartilage: covers 62.0%") for r in verdict["reasons"])
+
+
+def test_a_mesh_short_of_the_gate_but_usable_ships_for_review_not_thrown_away():
+    """Seen on unseen OA knees: a femoral cartilage of ~22 000 elements with 14 under 0.5 (min 0.21)
+    after every fallback.  Usable for FE, it ships as review with the reason; a mesh with an element
+    under 0.2, or many under 0.5, or one inverted, is not usable."""
+    from kneemesh_core.hexmesh.quality import passes_gate, usable
+    from kneemesh_core.job.verdict import tissue_verdict
+
+    seen = {"min_scaled_jacobian": 0.21, "frac_sj_below_0_5": 14 / 22000, "collapsed": 0, "inverted": 0,
+            "frac_edge_ratio_above_6": 0.0, "self_intersections": 0}
+    assert usable(seen) and not passes_gate(seen)
+    assert not usable({**seen, "min_scaled_jacobian": 0.19}) and not usable({**seen, "frac_sj_below_0_5": 0.01})
+    assert not usable({**seen, "inverted": 1})
+    entry = {"status": "ok", "coverage": 0.99, "volume_error": 0.01, "surface_deviation_mm": {"median": 0.05, "p95": 0.3},
+             "blend": {"passed": True}, "gate": {**seen, "gate_passed": False}}
+    status, reasons = tissue_verdict(False, entry)
+    assert status == "review" and reasons[0].startswith("short of the quality gate before blending (min scaled Jacobian 0.21")

@@ -23,7 +23,7 @@ from kneemesh_core.hexmesh.extrude import HexMesh, extrude
 from kneemesh_core.hexmesh.fidelity import fidelity, fidelity_checks, passes_fidelity, short_of_footprint
 from kneemesh_core.hexmesh.footprint import Footprint, find_footprint
 from kneemesh_core.hexmesh.quadmesh import quad_mesh
-from kneemesh_core.hexmesh.quality import boundary_crossings, hex_quality, passes_gate, summary, to_grid
+from kneemesh_core.hexmesh.quality import boundary_crossings, hex_quality, passes_gate, summary, to_grid, usable
 from kneemesh_core.hexmesh.rays import height_field
 from kneemesh_core.hexmesh.targets import (BLEND_FRAC_GOOD, BLEND_MIN_SCALED_JACOBIAN, FUSED_TOL_MM,
                                            MAX_ATTEMPT_VOLUME_ERROR, MIN_SCALED_JACOBIAN)
@@ -196,13 +196,17 @@ class Attempt:
         return passes_gate(self.summary)
 
     @property
+    def usable(self) -> bool:
+        return usable(self.summary)
+
+    @property
     def faithful(self) -> bool:
         return passes_fidelity(self.fidelity)
 
     def score(self) -> tuple:
-        """How attempts rank: within the gate first, then faithful, then the most fidelity targets
-        met, then the best worst element."""
-        return (self.within_gate, self.faithful, sum(fidelity_checks(self.fidelity).values()),
+        """How attempts rank: within the gate first, then usable, then faithful, then the most
+        fidelity targets met, then the best worst element."""
+        return (self.within_gate, self.usable, self.faithful, sum(fidelity_checks(self.fidelity).values()),
                 self.summary["min_scaled_jacobian"])
 
 
@@ -224,8 +228,9 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
     """Hex mesh of one cartilage from canonical labels, trying the fallbacks (unless
     ``opts.fallbacks`` is off) until the gate and the fidelity targets are met.
 
-    The best attempt is returned even when it misses the gate
-    (``facts["gate_passed"]`` says so); the caller decides what that means.
+    The best attempt is returned even when it misses the gate (``facts["gate_passed"]`` says so,
+    and ``facts["usable"]`` whether it is still usable for finite elements); the caller decides
+    what that means.
 
     Raises
     ------
@@ -273,6 +278,7 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
         "attempts": tried + ([best.name] if best.name not in tried else []),
         "domain": best.domain.describe(),
         "gate_passed": bool(best.within_gate),
+        "usable": bool(best.usable),
         "fidelity_passed": bool(best.faithful),
         "mesh_seconds": round(time.perf_counter() - t0, 3),
     }

@@ -18,6 +18,14 @@ MAX_FRAC_EDGE_RATIO = 0.001
 #: What the rim columns and the column optimiser aim for: a little under MAX_EDGE_RATIO, so that
 #: the articular faces' own edge ratios (checked last) stay within the gate.
 EDGE_RATIO_AIM = 5.8
+#: A mesh that misses the gate is still *usable* for finite elements (shipped as ``review``, never
+#: thrown away) when nothing is collapsed, inverted or crossing itself, the edge ratio is within
+#: the gate, every element is at least this ...
+USABLE_MIN_SCALED_JACOBIAN = 0.2
+#: ... and at most this fraction of elements is below MIN_SCALED_JACOBIAN.  (The paper's released
+#: meshes: median min SJ 0.06-0.17 and 4-5 % of elements below 0.5, every one analysable; a whole
+#: tissue is not discarded for a handful of elements.)
+USABLE_FRAC_BELOW = 0.002
 
 # -- fidelity to the label ----------------------------------------------------------------------
 #: A reconstructed-surface patch counts as covered within this distance of the mesh, mm.

@@ -25,13 +25,15 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 from typing import Iterable
 
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.job.options import JobOptions
-from kneemesh_core.job.outputs import bundle, read_step, utc_now, write_report, write_step
+from kneemesh_core.job.outputs import MESHES_DIR, bundle, read_step, utc_now, write_report, write_step
 from kneemesh_core.job.steps import (conform_bones, ingest, mesh_tissue, place_anatomy, run_simulation, segment_input,
                                     write_decks)
+from kneemesh_core.metrics.overlap import knee_overlaps
 from kneemesh_core.tissues import BONES, CARTILAGES, TISSUES
 
 INGEST, SEGMENT, CONFORM, ANATOMY, DECKS, SIMULATE, REPORT, BUNDLE = (
@@ -122,7 +124,8 @@ def _run(out_dir: str | os.PathLike, step: str, options: dict, input_path: str |
         conformed = read_step(out_dir, CONFORM)["result"] if CONFORM in planned else None
         anatomy, fe, simulation = (read_step(out_dir, s)["result"] if s in planned else None
                                    for s in (ANATOMY, DECKS, SIMULATE))
-        return write_report(out_dir, entries, conformed, anatomy, fe, simulation)["summary"]
+        overlaps = knee_overlaps(Path(out_dir) / MESHES_DIR) if any(t in CARTILAGES for t in entries) else None
+        return write_report(out_dir, entries, conformed, anatomy, fe, simulation, overlaps)["summary"]
     if step == BUNDLE:
         return {"artifacts": len(bundle(out_dir))}
     raise KneeMeshError("bad_option", f"unknown step {step!r}.")

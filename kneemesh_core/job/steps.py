@@ -79,7 +79,7 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
     """Mesh one tissue of an ingested job; returns its report entry, never raises.
 
     A bone is a closed shell (``meshes/<bone>.vtp``, and ``.stl`` on request); a cartilage
-    an all-hex mesh (``meshes/<cartilage>.vtu``, ``.rejected.vtu`` when it misses the gate)
+    an all-hex mesh (``meshes/<cartilage>.vtu``; ``.rejected.vtu`` when no attempt is usable for FE)
     blended and fused onto the bone mesh its bone's step wrote, and its surface
     (``surfaces/<cartilage>.vtp``).
     """
@@ -99,22 +99,22 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
             entry["status"], entry["reasons"] = tissue_verdict(True, entry)
         else:
             cm = mesh_cartilage(labels, tissue, opts.hex)
-            ok = cm.facts["gate_passed"]
-            if ok and opts.blend is not None:  # the bone stage ran first: fuse onto the bone mesh it wrote
+            ships = cm.facts["gate_passed"] or cm.facts["usable"]  # short of the gate but usable: for review
+            if ships and opts.blend is not None:  # the bone stage ran first: fuse onto the bone mesh it wrote
                 bone_file = folder / f"{BONE_OF[tissue]}.vtp"
                 cm = blend_cartilage(cm, pv.read(bone_file) if bone_file.exists() else None, opts.blend)
             facts = shipped_figures(cm)
             (out / SURFACES_DIR).mkdir(exist_ok=True)
-            files = [folder / f"{tissue}{'' if ok else '.rejected'}.vtu", out / SURFACES_DIR / f"{tissue}.vtp"]
+            files = [folder / f"{tissue}{'' if ships else '.rejected'}.vtu", out / SURFACES_DIR / f"{tissue}.vtp"]
             save_mesh(cm.grid(), files[0])
             save_mesh(cm.surface, files[1])
-            entry = {"status": "ok" if ok else "failed", **facts}
-            entry["status"], entry["reasons"] = tissue_verdict(False, entry) if ok else ("failed", [])
-            if not ok:
+            entry = {"status": "ok" if ships else "failed", **facts}
+            entry["status"], entry["reasons"] = tissue_verdict(False, entry) if ships else ("failed", [])
+            if not ships:
                 entry["code"] = "quality_gate"
-                entry["reason"] = (f"quality gate not met after {len(facts['attempts'])} attempts: min scaled Jacobian "
-                                   f"{facts['min_scaled_jacobian']}, {facts['inverted']} inverted, "
-                                   f"{facts['frac_edge_ratio_above_6']:.4%} with edge ratio > 6, "
+                entry["reason"] = (f"no usable mesh after {len(facts['attempts'])} attempts: min scaled Jacobian "
+                                   f"{facts['min_scaled_jacobian']}, {facts['frac_sj_below_0_5']:.3%} below 0.5, "
+                                   f"{facts['inverted']} inverted, {facts['frac_edge_ratio_above_6']:.4%} with edge ratio > 6, "
                                    f"{facts['self_intersections']} boundary edges crossing; best mesh kept as {files[0].name}")
         entry["files"] = [str(f.relative_to(out)) for f in files]
         return entry

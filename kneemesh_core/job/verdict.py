@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from kneemesh_core.hexmesh.fidelity import fidelity_checks
 from kneemesh_core.hexmesh.targets import (FUSED_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM, MIN_COVERAGE,
-                                           VOLUME_TOL)
+                                           MIN_SCALED_JACOBIAN, USABLE_FRAC_BELOW, USABLE_MIN_SCALED_JACOBIAN, VOLUME_TOL)
 
 OK, REVIEW, FAILED = "ok", "review", "failed"
 _RANK = {OK: 0, REVIEW: 1, FAILED: 2}
@@ -39,6 +39,12 @@ def cartilage_reasons(e: dict) -> list[str]:
     """What the shipped cartilage mesh misses: fidelity to its label, the blend and fusion checks, and
     (after the conform step) cartilage left inside its bone."""
     out = []
+    gate = e.get("gate", {})
+    if gate.get("gate_passed") is False:
+        out.append(f"short of the quality gate before blending (min scaled Jacobian {gate['min_scaled_jacobian']}, "
+                   f"{gate['frac_sj_below_0_5']:.3%} of elements below {MIN_SCALED_JACOBIAN}; target: none) but usable "
+                   f"for finite elements (every element at least {USABLE_MIN_SCALED_JACOBIAN}, at most "
+                   f"{USABLE_FRAC_BELOW:.1%} below {MIN_SCALED_JACOBIAN})")
     checks = fidelity_checks(e)
     if not checks["coverage"]:
         out.append(f"covers {e['coverage']:.1%} of the cartilage (target {MIN_COVERAGE:.0%})")
@@ -67,8 +73,9 @@ def tissue_verdict(tissue_is_bone: bool, e: dict) -> tuple[str, list[str]]:
 
 
 def knee_verdict(report: dict) -> dict:
-    """The knee's verdict: the worst of its tissues, anatomy, decks and simulation, every reason named."""
-    parts = {**report.get("tissues", {}), **{k: report[k] for k in ("anatomy", "fe", "simulation") if k in report}}
+    """The knee's verdict: the worst of its tissues, anatomy, decks, simulation and overlaps, every
+    reason named."""
+    parts = {**report.get("tissues", {}), **{k: report[k] for k in ("anatomy", "fe", "simulation", "overlaps") if k in report}}
     reasons = []
     for name, e in parts.items():
         if e.get("status") == FAILED:
