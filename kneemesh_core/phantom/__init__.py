@@ -16,7 +16,7 @@ import SimpleITK as sitk
 
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.io import write_image
-from kneemesh_core.phantom.anatomy import KneeParams, build_knee
+from kneemesh_core.phantom.anatomy import KneeParams, build_knee, sample_features
 from kneemesh_core.phantom.contrast import synthesize
 
 SIZE_IJK = (384, 384, 160)
@@ -61,7 +61,7 @@ def make_phantom(seed: int, side: str = "right", severity: int = 0) -> tuple[sit
     if severity not in (0, 1, 2, 3):
         raise KneeMeshError("bad_severity", f"severity {severity!r} is not one of 0, 1, 2, 3.")
     rng = np.random.default_rng([seed, 0 if side == "right" else 1, severity])
-    p = KneeParams.sample(rng, severity)
+    p = sample_features(KneeParams.sample(rng, severity), np.random.default_rng([seed, 0 if side == "right" else 1, severity, 1]))
     I, J, K = SIZE_IJK
     si, sj, sk = SPACING_MM
     # knee joint centre in LPS mm, and the FOV centred near it

@@ -33,6 +33,13 @@ class KneeParams:
     rotation_deg: float  # external rotation of the knee in the scanner
     severity: int
     wave: np.ndarray  # (4, 5) random smooth thickness field coefficients
+    # OA and habitus features drawn by :meth:`sample_features` (their own random stream, so that
+    # a phantom's other draws stay what they were):
+    thickness_factor: float = 1.0  # very thin (< 1) or very thick (> 1) cartilage
+    trochlea: str = "normal"  # "thin" (40 % of its thickness) or "absent" (no trochlear cartilage)
+    #: full-thickness femoral lesions: (condyle -1 medial / +1 lateral, offset along the condyle mm,
+    #: angle from distal towards posterior deg, radius mm); two close ones leave a narrow strip
+    femoral_lesions: tuple = ()
 
     @classmethod
     def sample(cls, rng: np.random.Generator, severity: int) -> "KneeParams":
@@ -53,6 +60,28 @@ class KneeParams:
         )
 
 
+def sample_features(p: KneeParams, rng: np.random.Generator) -> KneeParams:
+    """The phantom's OA and habitus features, more and larger with severity: cartilage very thin or
+    very thick for the whole knee (any severity); a thin or absent trochlear cartilage, a large
+    denuded area on a femoral condyle, and a narrow strip of cartilage between two lesions (severity
+    2-3).  Seen on real OA knees where the mesher was not tuned."""
+    import dataclasses
+
+    u = rng.random()
+    factor = rng.uniform(0.55, 0.75) if u < 0.15 else rng.uniform(1.2, 1.4) if u < 0.3 else 1.0
+    trochlea, lesions = "normal", []
+    if p.severity >= 2:
+        t = rng.random()
+        trochlea = "absent" if t < 0.1 * p.severity else "thin" if t < 0.25 * p.severity else "normal"
+        if p.severity == 3 or rng.random() < 0.5:  # a denuded area in the weight-bearing zone
+            lesions.append((float(rng.choice([-1.0, 1.0])), rng.uniform(-5, 5), rng.uniform(-10, 35), rng.uniform(7, 11)))
+        if rng.random() < 0.5:  # two lesions with a narrow strip of cartilage between them
+            side, along, angle = float(rng.choice([-1.0, 1.0])), rng.uniform(-4, 4), rng.uniform(-15, 20)
+            r1, r2, strip = rng.uniform(4, 6), rng.uniform(4, 6), rng.uniform(1.5, 3.0)
+            lesions += [(side, along, angle, r1), (side, along, angle + np.degrees((r1 + r2 + strip) / p.condyle_radius), r2)]
+    return dataclasses.replace(p, thickness_factor=factor, trochlea=trochlea, femoral_lesions=tuple(lesions))
+
+
 def _rotate(a, b, angle_deg, ca, cb):
     """Rotate coordinates (a, b) about (ca, cb) by -angle (maps world to a posed frame)."""
     t = np.deg2rad(angle_deg)
@@ -67,7 +96,7 @@ def _thickness(p: KneeParams, u, v, w, nominal: float, k: int) -> np.ndarray:
     f = 1.0 + 0.22 * np.sin(c[0] * 0.09 * u + c[1] * 2) * np.cos(c[2] * 0.08 * v + c[3] * 0.07 * w + c[4])
     t = np.clip(nominal * f, 1.5, 3.5)
     thin = 1.0 - 0.12 * p.severity
-    return (t * thin).astype(np.float32)
+    return (t * thin * p.thickness_factor).astype(np.float32)
 
 
 @dataclass
@@ -150,14 +179,24 @@ def knee_fields(u, v, w, p: KneeParams, rng: np.random.Generator) -> dict[str, n
     # femoral cartilage thins to nothing over 3 mm towards the intercondylar notch (whose walls carry
     # the cruciate ligaments, not cartilage)
     t_f = _thickness(p, uf, vf, wf, p.fc_mm, 0) * np.clip(notch / 3.0, 0.0, 1.0).astype(np.float32)
+    troch_zone = np.float32(1.0) / (1 + np.exp(-(vf - (v_c + 0.35 * R_m)) / 1.5))  # 0 on the condyles, 1 on the trochlea
+    if p.trochlea == "thin":
+        t_f = t_f * (1.0 - 0.6 * troch_zone).astype(np.float32)
     t_t = _thickness(p, u, v, w, p.tc_mm, 1) + np.where(u > 0, np.float32(p.lateral_delta), np.float32(0))
     t_p = _thickness(p, uf, vf, wf, p.pc_mm, 2)
     condyles = region(wf - (w_c + 0.3 * R_m), np.abs(uf) - (u_c + 11.0 * s),
                       # the condyles' inner faces (|u| = 7.5 s, rounded over 5 mm) face the notch: bare
                       -np.maximum(np.abs(uf) - (7.5 * s + 2.0), vf - (v_c + 6)))
     trochlea = region((v_c + 0.25 * R_m) - vf, wf - (w_c + 0.75 * R_m), np.abs(uf) - 27 * s)
-    fem_region = np.maximum(np.minimum(condyles, trochlea),
+    fem_region = np.maximum(np.minimum(condyles, trochlea if p.trochlea != "absent" else np.float32(np.inf)),
                             -np.maximum(vf - (v_c - 0.2 * R_m), (w_c + 0.2 * R_m) - wf))
+    for side, along, angle, r in p.femoral_lesions:  # full thickness: no cartilage within r of a point on the condyle
+        lateral = side > 0
+        radius = R_m - (p.lateral_delta if lateral else 0.0)
+        a = np.radians(angle)
+        centre = (side * u_c + along * s, v_c - radius * np.sin(a), w_c + (p.lateral_delta if lateral else 0.0) - radius * np.cos(a))
+        ball = np.sqrt((uf - centre[0]) ** 2 + (vf - centre[1]) ** 2 + (wf - centre[2]) ** 2) - r
+        fem_region = np.maximum(fem_region, -ball)
     tib_region = region((w_t - 1.5) - w, 6.5 * s - np.abs(u),
                         # the medial plateau is longer antero-posteriorly than the lateral one
                         10 * (np.sqrt((u / (35 * s)) ** 2 + (v / np.where(u < 0, 24 * s, 20 * s)) ** 2) - 1.0))
