@@ -382,7 +382,6 @@ def _carry_out(hm: HexMesh, b, a, target, move, offer, group, floor):
     with its articular nodes in place tries again carrying them half, then all of the way along
     (the column comes off the bone whole rather than tilting).  Returns ``move``, the articular
     nodes, and the offers still refused."""
-    P, L = len(b), int(hm.node_layer.max())
     shift = target - b
     for carry in (0.0, 0.5, 1.0):
         top = np.where(offer[:, None], a + carry * shift, a)
