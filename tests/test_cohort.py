@@ -268,6 +268,9 @@ def test_knees_are_found_in_dicom_trees_and_manifests(tmp_path):
     manifest.write_text(f"id,path,side\nsubject1/left,{label},left\nsubject1/dess,{tmp_path / 'cohort'},\n")
     knees = find_knees(manifest)
     assert [(k.id, k.side, k.input_type) for k in knees] == [("subject1/left", "left", "labels"), ("subject1/dess", None, "image")]
+    from kneemesh.cohort.discover import visit_of
+
+    assert [visit_of(t) for t in ("9003406M12", "x/V01/scan", "OAI_ZIB-UQ_9011115")] == ["12m", "V01", None]
     manifest.write_text(f"id,path,side\nsubject1,{label},up\n")
     with pytest.raises(KneeMeshError, match="line 2: side 'up' is not left or right"):
         find_knees(manifest)

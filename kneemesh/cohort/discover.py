@@ -19,7 +19,9 @@ from kneemesh_core.io import dicom
 VOLUME_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".mha", ".mhd")
 #: A volume with an integer type and at most this many distinct values is a label map.
 MAX_LABELS = 32
-_VISIT = re.compile(r"(?:^|[_/\-])(\d{2,3}m|V\d{2})(?:$|[_/\-.])", re.IGNORECASE)
+#: OAI visits as written in names: 00m, 12m (months), M12 (after a subject id too: 9003406M12), V01.
+_VISIT = re.compile(r"(?:^|[_/\-])(\d{2,3})m(?=$|[_/\-.])|(?:^|[_/\-]|(?<=\d))M(\d{2})(?=$|[_/\-.])"
+                    r"|(?:^|[_/\-])(V\d{2})(?=$|[_/\-.])", re.IGNORECASE)
 _SIDE = re.compile(r"(?:^|[_/\-\s])(LEFT|RIGHT|L|R)(?:$|[_/\-\s.])", re.IGNORECASE)
 
 
@@ -43,8 +45,12 @@ def _strip(name: str) -> str:
 
 
 def visit_of(text: str) -> str | None:
+    """The visit a name carries, as months ('00m', '12m') or an OAI visit code ('V01'), else None."""
     m = _VISIT.search(text)
-    return m.group(1).lower() if m else None
+    if not m:
+        return None
+    months = m.group(1) or m.group(2)
+    return f"{int(months):02d}m" if months else m.group(3).upper()
 
 
 def side_of(text: str) -> str | None:
