@@ -91,10 +91,11 @@ def main() -> None:
                 args.json.write_text(json.dumps(results, indent=1, default=float))
             # a line per knee, in a terminal or a log: a long run shows that it is alive
             console.print(f"[{len(results)}/{len(sources)}] {Path(src).name}: {dt:.1f} s", highlight=False)
-            bad = [t for t, f in out.items() if f["status"] != "ok"]
-            if bad:
-                console.print(f"[red]{Path(src).name}: failed {', '.join(bad)}[/]: " + "; ".join(
-                    out[t].get("reason", f"min SJ {out[t].get('min_scaled_jacobian')}") for t in bad))
+            for t, f in out.items():
+                if f["status"] != "ok":
+                    colour = "red" if f["status"] == "failed" else "yellow"
+                    console.print(f"[{colour}]{Path(src).name}: {t} {f['status']}[/]: "
+                                  + "; ".join(f.get("reasons") or [f.get("reason", "")]), highlight=False)
             unblended = [t for t, f in out.items() if "blend" in f and not f["blend"]["passed"]]
             if unblended:
                 console.print(f"[yellow]{Path(src).name}: blend missed its targets for {', '.join(unblended)}[/]: " + "; ".join(
@@ -107,7 +108,7 @@ def main() -> None:
         for t, f in out.items():
             per[t].append(f)
     table = Table(title=f"cartilage meshing on {len(results)} knees (element size {args.element_size} mm)")
-    for col in ("tissue", "success", "fidelity ok", "min SJ: median (worst)", "% SJ<0.5: median (max)", "edge ratio max (worst)",
+    for col in ("tissue", "ok / review / failed", "fidelity ok", "min SJ: median (worst)", "% SJ<0.5: median (max)", "edge ratio max (worst)",
                 "% ER>6 max", "vol err: median |.| (worst)", "coverage: median (worst)", "dev p95 mm: median (worst)",
                 "fallbacks", "s/tissue median"):
         table.add_column(col)
@@ -116,10 +117,11 @@ def main() -> None:
         fs = per[t]
         ok = [f for f in fs if f["status"] == "ok"]
         total_ok += len(ok)
+        verdicts = "/".join(str(sum(f["status"] == v for f in fs)) for v in ("ok", "review", "failed"))
         # the gate's figures (before blending): the meshing itself; the shipped ones are in the blend table
         m = [{**f, **f.get("gate", {})} for f in fs if "min_scaled_jacobian" in f]
         if not m:
-            table.add_row(t, f"{len(ok)}/{len(fs)}", *["-"] * 10)
+            table.add_row(t, verdicts, *["-"] * 10)
             continue
         sj = np.array([f["min_scaled_jacobian"] for f in m])
         below = np.array([f["frac_sj_below_0_5"] for f in m]) * 100
@@ -130,7 +132,7 @@ def main() -> None:
         dev = np.array([f["surface_deviation_mm"]["p95"] for f in m])
         fb = Counter(x for f in m for x in f["fallbacks"])
         fid = sum(bool(f.get("fidelity_passed")) for f in m)
-        table.add_row(t, f"{len(ok)}/{len(fs)}", f"{fid}/{len(fs)}", f"{np.median(sj):.3f} ({sj.min():.3f})", f"{np.median(below):.3f} ({below.max():.3f})",
+        table.add_row(t, verdicts, f"{fid}/{len(fs)}", f"{np.median(sj):.3f} ({sj.min():.3f})", f"{np.median(below):.3f} ({below.max():.3f})",
                       f"{np.median(er):.2f} ({er.max():.2f})", f"{er6.max():.3f}", f"{np.median(vol):.2%} ({vol.max():.2%})",
                       f"{np.median(cov):.3f} ({cov.min():.3f})", f"{np.median(dev):.3f} ({dev.max():.3f})",
                       ", ".join(f"{k}: {v}" for k, v in fb.items()) or "none",
@@ -139,7 +141,10 @@ def main() -> None:
     if not args.no_blend:
         blend_table(per)
     n = sum(len(v) for v in per.values())
-    console.print(f"success: {total_ok}/{n} cartilages ({total_ok / max(n, 1):.1%}); knees with all four ok: "
+    failed = sum(f["status"] == "failed" for fs in per.values() for f in fs)
+    faithful = sum(bool(f.get("fidelity_passed")) for fs in per.values() for f in fs)
+    console.print(f"cartilages: {total_ok}/{n} ok ({total_ok / max(n, 1):.1%}), {failed} failed, {faithful}/{n} meet every "
+                  f"fidelity target ({faithful / max(n, 1):.1%}); knees with all four ok: "
                   f"{sum(all(f['status'] == 'ok' for f in out.values()) for out in results.values())}/{len(results)}; "
                   f"time per knee (the whole job, one process): median {np.median(times):.1f} s, max {max(times):.1f} s")
 

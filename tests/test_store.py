@@ -15,10 +15,12 @@ from services.store import FileStore
 
 def test_plan_stages_bones_before_cartilage():
     stages = plan(JobOptions(bundle=True))
-    assert stages[0] == (INGEST,) and stages[-5:] == [(CONFORM,), (ANATOMY,), (DECKS,), (REPORT,), (BUNDLE,)]
+    assert stages[0] == (INGEST,) and stages[-4:] == [(CONFORM,), (DECKS,), (REPORT,), (BUNDLE,)]
     assert plan(JobOptions(simulate="smoke"))[-3:] == [(DECKS,), (SIMULATE,), (REPORT,)]
     assert set(stages[1]) == {"femur", "tibia", "patella"} and stages[1][0] == "femur"
-    assert len(stages[2]) == 4 and stages[2][0] == "femoral_cartilage"
+    # the anatomy needs only the bones: it runs beside the cartilages, after the longest of them
+    assert stages[2] == ("femoral_cartilage", ANATOMY, "medial_tibial_cartilage", "lateral_tibial_cartilage",
+                         "patellar_cartilage")
     assert plan(JobOptions(only="bones")) == [(INGEST,), ("femur", "tibia", "patella"), (ANATOMY,), (REPORT,)]
     assert ANATOMY not in sum(plan(JobOptions(only="cartilage")), ())  # the sites need the bone meshes
     assert CONFORM not in sum(plan(JobOptions(blend=None)), ())  # the bones give way only to fused cartilage

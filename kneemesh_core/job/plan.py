@@ -44,14 +44,19 @@ def plan(options: JobOptions) -> list[tuple[str, ...]]:
     """The stages of a job, in order; the steps of one stage may run in parallel."""
     tissues = options.tissues()
     stages: list[tuple[str, ...]] = [(INGEST,)] + ([(SEGMENT,)] if options.input_type == "image" else [])
-    for group in (BONES, CARTILAGES):
-        steps = tuple(_longest_first(t for t in tissues if t in group))
-        if steps:
-            stages.append(steps)
+    # the anatomy needs only the bones and the labels: it runs beside the cartilages (or after the
+    # bones when no cartilage is asked for)
+    anatomy = (ANATOMY,) if set(tissues) >= set(BONES) else ()
+    bones = tuple(_longest_first(t for t in tissues if t in BONES))
+    cartilages = tuple(_longest_first(t for t in tissues if t in CARTILAGES))
+    if bones:
+        stages.append(bones)
+    if cartilages:
+        stages.append(cartilages[:1] + anatomy + cartilages[1:])  # the longest first, the anatomy next
+    elif anatomy:
+        stages.append(anatomy)
     if options.blend is not None and set(tissues) >= set(BONES) | set(CARTILAGES):
         stages.append((CONFORM,))
-    if set(tissues) >= set(BONES):
-        stages.append((ANATOMY,))
     if set(tissues) == set(TISSUES):
         stages.append((DECKS,))
         if options.simulate != "none":
