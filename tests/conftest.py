@@ -49,15 +49,16 @@ def mirror_lr(image: sitk.Image) -> sitk.Image:
 
 @pytest.fixture(scope="session")
 def phantoms():
-    """(side, severity) -> (image, labels) built on first use."""
+    """(side, severity, seed, features) -> (image, labels) built on first use; ``features=False``
+    is the knee before the OA and habitus features (the geometry a regression case was found on)."""
     from kneemesh_core.phantom import make_phantom
 
     cache: dict = {}
 
-    def get(side: str = "right", severity: int = 0, seed: int = 7):
-        key = (seed, side, severity)
+    def get(side: str = "right", severity: int = 0, seed: int = 7, features: bool = True):
+        key = (seed, side, severity, features)
         if key not in cache:
-            image, labels, _ = make_phantom(seed, side, severity)
+            image, labels, _ = make_phantom(seed, side, severity, features=features)
             cache[key] = (image, labels)
         return cache[key]
 

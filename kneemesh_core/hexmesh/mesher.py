@@ -204,9 +204,11 @@ class Attempt:
         return passes_fidelity(self.fidelity)
 
     def score(self) -> tuple:
-        """How attempts rank: within the gate first, then usable, then faithful, then the most
-        fidelity targets met, then the best worst element."""
-        return (self.within_gate, self.usable, self.faithful, sum(fidelity_checks(self.fidelity).values()),
+        """How attempts rank: usable for FE first, then faithful to the label, then the most fidelity
+        targets met, then within the gate, then the best worst element.  An attempt within the gate
+        and faithful ends the chain; when none is, a mesh that stands for the whole cartilage with a
+        few elements short of the gate beats a hollow one within it (both ship for review)."""
+        return (self.usable, self.faithful, sum(fidelity_checks(self.fidelity).values()), self.within_gate,
                 self.summary["min_scaled_jacobian"])
 
 
@@ -245,8 +247,10 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
     best: Attempt | None = None
     cache: dict = {}
     for name, change in (("default", {}),) + (FALLBACKS if opts.fallbacks else ()):
-        short = best is not None and best.within_gate and short_of_footprint(best.fidelity)
-        if (name in NARROWING and short) or (name in WIDENING and not short):
+        short = best is not None and short_of_footprint(best.fidelity)
+        # narrowing cannot help a mesh within the gate that already covers too little; widening is
+        # worth a try for any usable mesh short of the cartilage
+        if (name in NARROWING and short and best.within_gate) or (name in WIDENING and not (short and best.usable)):
             continue
         change = dict(change)
         factor = change.pop("element_size_factor", 1.0)

@@ -6,7 +6,7 @@ import numpy as np
 import pyvista as pv
 
 from kneemesh_core.hexmesh.targets import (MAX_EDGE_RATIO, MAX_FRAC_EDGE_RATIO, MIN_SCALED_JACOBIAN, USABLE_FRAC_BELOW,
-                                           USABLE_MIN_SCALED_JACOBIAN)
+                                           USABLE_FRAC_EDGE_RATIO, USABLE_MIN_SCALED_JACOBIAN)
 from kneemesh_core.surfaces.metrics import crossing_edges
 
 #: The 12 edges of a VTK / C3D8 hexahedron.
@@ -74,7 +74,7 @@ def boundary_surface(grid: pv.UnstructuredGrid) -> pv.PolyData:
 def usable(s: dict) -> bool:
     """Short of the gate (perhaps) but usable for finite elements (:mod:`.targets`): shipped for review."""
     return (s["min_scaled_jacobian"] >= USABLE_MIN_SCALED_JACOBIAN and s["frac_sj_below_0_5"] <= USABLE_FRAC_BELOW
-            and s["collapsed"] == 0 and s["inverted"] == 0 and s["frac_edge_ratio_above_6"] <= MAX_FRAC_EDGE_RATIO
+            and s["collapsed"] == 0 and s["inverted"] == 0 and s["frac_edge_ratio_above_6"] <= USABLE_FRAC_EDGE_RATIO
             and s.get("self_intersections", 0) == 0)
 
 

@@ -9,8 +9,9 @@ misses a fidelity or plausibility target; ``failed`` means there is no usable fi
 from __future__ import annotations
 
 from kneemesh_core.hexmesh.fidelity import fidelity_checks
-from kneemesh_core.hexmesh.targets import (FUSED_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM, MIN_COVERAGE,
-                                           MIN_SCALED_JACOBIAN, USABLE_FRAC_BELOW, USABLE_MIN_SCALED_JACOBIAN, VOLUME_TOL)
+from kneemesh_core.hexmesh.targets import (FUSED_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM, MAX_EDGE_RATIO,
+                                           MAX_FRAC_EDGE_RATIO, MIN_COVERAGE, MIN_SCALED_JACOBIAN, USABLE_FRAC_BELOW,
+                                           USABLE_FRAC_EDGE_RATIO, USABLE_MIN_SCALED_JACOBIAN, VOLUME_TOL)
 
 OK, REVIEW, FAILED = "ok", "review", "failed"
 _RANK = {OK: 0, REVIEW: 1, FAILED: 2}
@@ -41,10 +42,16 @@ def cartilage_reasons(e: dict) -> list[str]:
     out = []
     gate = e.get("gate", {})
     if gate.get("gate_passed") is False:
-        out.append(f"short of the quality gate before blending (min scaled Jacobian {gate['min_scaled_jacobian']}, "
-                   f"{gate['frac_sj_below_0_5']:.3%} of elements below {MIN_SCALED_JACOBIAN}; target: none) but usable "
-                   f"for finite elements (every element at least {USABLE_MIN_SCALED_JACOBIAN}, at most "
-                   f"{USABLE_FRAC_BELOW:.1%} below {MIN_SCALED_JACOBIAN})")
+        missed = []
+        if gate["min_scaled_jacobian"] < MIN_SCALED_JACOBIAN:
+            missed.append(f"min scaled Jacobian {gate['min_scaled_jacobian']}, {gate['frac_sj_below_0_5']:.3%} of elements "
+                          f"below {MIN_SCALED_JACOBIAN} (target: none)")
+        if gate["frac_edge_ratio_above_6"] > MAX_FRAC_EDGE_RATIO:
+            missed.append(f"{gate['frac_edge_ratio_above_6']:.2%} of elements with an edge ratio above {MAX_EDGE_RATIO:g} "
+                          f"(target {MAX_FRAC_EDGE_RATIO:.1%})")
+        out.append(f"short of the quality gate before blending ({'; '.join(missed) or 'see gate'}) but usable for finite "
+                   f"elements (every element at least {USABLE_MIN_SCALED_JACOBIAN}, at most {USABLE_FRAC_BELOW:.1%} below "
+                   f"{MIN_SCALED_JACOBIAN}, at most {USABLE_FRAC_EDGE_RATIO:.0%} above the edge ratio)")
     checks = fidelity_checks(e)
     if not checks["coverage"]:
         out.append(f"covers {e['coverage']:.1%} of the cartilage (target {MIN_COVERAGE:.0%})")

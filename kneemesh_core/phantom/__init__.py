@@ -47,8 +47,10 @@ class _Grid:
         return self.c * u0 + self.s * v0, -self.s * u0 + self.c * v0, w
 
 
-def make_phantom(seed: int, side: str = "right", severity: int = 0) -> tuple[sitk.Image, sitk.Image, KneeParams]:
-    """Build one phantom knee.
+def make_phantom(seed: int, side: str = "right", severity: int = 0,
+                 features: bool = True) -> tuple[sitk.Image, sitk.Image, KneeParams]:
+    """Build one phantom knee; ``features=False`` leaves out the OA and habitus features of
+    :func:`.anatomy.sample_features` (the knee as it was before they were added).
 
     Returns
     -------
@@ -61,7 +63,9 @@ def make_phantom(seed: int, side: str = "right", severity: int = 0) -> tuple[sit
     if severity not in (0, 1, 2, 3):
         raise KneeMeshError("bad_severity", f"severity {severity!r} is not one of 0, 1, 2, 3.")
     rng = np.random.default_rng([seed, 0 if side == "right" else 1, severity])
-    p = sample_features(KneeParams.sample(rng, severity), np.random.default_rng([seed, 0 if side == "right" else 1, severity, 1]))
+    p = KneeParams.sample(rng, severity)
+    if features:
+        p = sample_features(p, np.random.default_rng([seed, 0 if side == "right" else 1, severity, 1]))
     I, J, K = SIZE_IJK
     si, sj, sk = SPACING_MM
     # knee joint centre in LPS mm, and the FOV centred near it
