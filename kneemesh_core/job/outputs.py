@@ -70,11 +70,12 @@ def write_step(out_dir: str | os.PathLike, step: str, record: dict) -> None:
 
 def write_report(out_dir: str | os.PathLike, entries: dict[str, dict], conformed: dict | None = None,
                  anatomy: dict | None = None, fe: dict | None = None, simulation: dict | None = None,
-                 overlaps: dict | None = None) -> dict:
+                 overlaps: dict | None = None, segmentation: dict | None = None) -> dict:
     """``report.json`` from ``job.json``, the tissue entries, what the conform step did (each
     bone's entry gains ``conformed``, each of its cartilages' ``bone_conform``), the anatomy
     step's entry (``anatomy``: residuals, angles, unplaced sites, status and reasons), the decks,
-    the simulation and the overlaps of the final meshes (:mod:`kneemesh_core.metrics.overlap`)."""
+    the simulation, the overlaps of the final meshes (:mod:`kneemesh_core.metrics.overlap`) and, for
+    an image, the segmentation's plausibility."""
     out = Path(out_dir)
     job = read_json(out / JOB_FILE)
     entries = {t: dict(e) for t, e in entries.items()}
@@ -93,6 +94,7 @@ def write_report(out_dir: str | os.PathLike, entries: dict[str, dict], conformed
         **({"fe": fe} if fe is not None else {}),
         **({"simulation": simulation} if simulation is not None else {}),
         **({"overlaps": overlaps} if overlaps is not None else {}),
+        **({"segmentation": segmentation} if segmentation is not None else {}),
     }
     report["verdict"] = knee_verdict(report)
     report["summary"] = {status: sorted(t for t, e in entries.items() if e["status"] == status)

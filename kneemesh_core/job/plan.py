@@ -127,10 +127,10 @@ def _run(out_dir: str | os.PathLike, step: str, options: dict, input_path: str |
         entries = {t: read_step(out_dir, t)["result"] for t in opts.tissues()}
         planned = sum(plan(opts), ())
         conformed = read_step(out_dir, CONFORM)["result"] if CONFORM in planned else None
-        anatomy, fe, simulation = (read_step(out_dir, s)["result"] if s in planned else None
-                                   for s in (ANATOMY, DECKS, SIMULATE))
+        segmentation, anatomy, fe, simulation = (read_step(out_dir, s)["result"] if s in planned else None
+                                                 for s in (SEGMENT, ANATOMY, DECKS, SIMULATE))
         overlaps = knee_overlaps(Path(out_dir) / MESHES_DIR) if any(t in CARTILAGES for t in entries) else None
-        return write_report(out_dir, entries, conformed, anatomy, fe, simulation, overlaps)["summary"]
+        return write_report(out_dir, entries, conformed, anatomy, fe, simulation, overlaps, segmentation)["summary"]
     if step == BUNDLE:
         return {"artifacts": len(bundle(out_dir))}
     raise KneeMeshError("bad_option", f"unknown step {step!r}.")

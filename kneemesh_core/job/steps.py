@@ -59,8 +59,11 @@ def ingest(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: J
 
 def segment_input(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: JobOptions) -> dict:
     """Image inputs: segment the image into canonical labels ``labels.nrrd``; ``job.json`` gains the
-    knee's description and the segmentation's facts."""
+    knee's description and the segmentation's facts.  Returns the report's ``segmentation`` entry:
+    ``review`` with the reasons when the labels are not a plausible knee
+    (:mod:`kneemesh_core.segmentation.plausibility`)."""
     from kneemesh_core.segmentation.infer import SegmentationModel, segment
+    from kneemesh_core.segmentation.plausibility import check, figures
 
     out = Path(out_dir)
     model = SegmentationModel.load(options.model)
@@ -71,8 +74,10 @@ def segment_input(input_path: str | os.PathLike, out_dir: str | os.PathLike, opt
              "image": job["input"]}
     job["input"] = {**describe(result.knee), "preset": "segmented", "segmentation": facts}
     write_json(out / JOB_FILE, job)
-    return {"status": "ok", "side": result.knee.side, "seconds": result.seconds["total"],
-            "tissues_ml": job["input"]["tissues"]}
+    plausibility = figures(result.knee.labels)
+    status, reasons = check(plausibility)
+    return {"status": status, "reasons": reasons, "side": result.knee.side, "seconds": result.seconds["total"],
+            "tissues_ml": job["input"]["tissues"], "plausibility": plausibility}
 
 
 def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
