@@ -172,7 +172,7 @@ def render(root: Path, data: dict) -> str:
                                          "coverage median (min)", "|volume error| or bone p95 distance mm, median (min)"],
                                         tissue_rows)]
     if seconds:
-        parts.append(f"<p>Job time: median {np.median(seconds):.1f} s, slowest {max(seconds):.1f} s.</p>")
+        parts.append(f"<p>Job time (the sum of its steps, s): median {np.median(seconds):.1f}, slowest {max(seconds):.1f}.</p>")
     for title, fig in figures:
         if fig:
             parts += [f"<h2>{title}</h2>", fig]
