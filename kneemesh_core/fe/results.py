@@ -22,14 +22,16 @@ _STATS = re.compile(r"^\s*statistics for slave set (\S+), master set (\S+) and t
 _TABLE = re.compile(r"^\s*(displacements|forces|total force|contact stress)\b.*?(?:for set (\S+)|for all contact elements)\s+and time\s+(\S+)")
 
 
-def parse_dat(path: Path) -> dict:
+def parse_dat(path: Path, stopped: bool = False) -> dict:
     """{"contact": {time: {slave: {force, area, normal_force}}}, "stress": {time: [(element, pressure)]},
-    "nodes": {(table, set): {time: {node or "total": (3,)}}}}."""
+    "nodes": {(table, set): {time: {node or "total": (3,)}}}}.  ``stopped``: ccx did not finish (a
+    time limit, a kill), so the last increment in the file may be cut short anywhere, even inside a
+    number: it is dropped, as is a block found cut short in any file."""
     contact: dict = defaultdict(dict)
     stress: dict = defaultdict(list)
     nodes: dict = defaultdict(lambda: defaultdict(dict))
     lines = Path(path).read_text().splitlines()
-    i, current = 0, None
+    i, current, cut_at = 0, None, None
     while i < len(lines):
         line = lines[i]
         m = _STATS.match(line)
@@ -41,6 +43,9 @@ def parse_dat(path: Path) -> dict:
                 if parts and all(re.fullmatch(r"[-+0-9.Ee]+|NaN|nan|-?Infinity|-?inf", p) for p in parts):
                     numbers.append([float(p) for p in parts])
                 j += 1
+            if len(numbers) < 4 or len(numbers[0]) < 3 or len(numbers[3]) < 2:
+                cut_at = float(m.group(3))
+                break
             force, _, _, anf = numbers
             contact[float(m.group(3))][m.group(1)] = {"force": force[:3], "area": anf[0], "normal_force": anf[1]}
             i, current = j, None
@@ -50,13 +55,27 @@ def parse_dat(path: Path) -> dict:
             current = (m.group(1), m.group(2), float(m.group(3)))
         elif current is not None and line.strip():
             parts = line.split()
-            if current[0] == "contact stress":
-                stress[current[2]].append((int(parts[0]), float(parts[2])))
-            elif current[0] == "total force":  # a set's summed reaction: no node id
-                nodes[(current[0], current[1])][current[2]]["total"] = np.array([float(p) for p in parts[:3]])
-            else:
-                nodes[(current[0], current[1])][current[2]][int(parts[0])] = np.array([float(p) for p in parts[1:4]])
+            try:
+                if current[0] == "contact stress":
+                    stress[current[2]].append((int(parts[0]), float(parts[2])))
+                elif current[0] == "total force":  # a set's summed reaction: no node id
+                    nodes[(current[0], current[1])][current[2]]["total"] = np.array([float(p) for p in parts[:3]], float)
+                else:
+                    row = np.array([float(p) for p in parts[1:4]])
+                    if row.shape != (3,):
+                        raise ValueError(line)
+                    nodes[(current[0], current[1])][current[2]][int(parts[0])] = row
+            except (ValueError, IndexError):  # a line cut short
+                cut_at = current[2]
+                break
         i += 1
+    times = [*contact, *stress, *(t for table in nodes.values() for t in table)]
+    drop = {cut_at} | ({max(times)} if stopped and times else set())  # increments that may be incomplete
+    for t in drop:
+        contact.pop(t, None)
+        stress.pop(t, None)
+        for table in nodes.values():
+            table.pop(t, None)
     return {"contact": dict(contact), "stress": dict(stress), "nodes": nodes}
 
 
@@ -133,7 +152,7 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
     """``results.json`` (and ``contact.png``) in ``folder`` from a run and its .dat file.  ``completed``
     needs ccx to finish and every loaded increment to be physics (:func:`first_invalid`);
     ``reached_flexion_deg`` is the last trusted increment's flexion."""
-    increments = summarise(parse_dat(dat_path), meta) if dat_path.exists() else []
+    increments = summarise(parse_dat(dat_path, stopped=not run.completed), meta) if dat_path.exists() else []
     invalid = first_invalid(increments)
     trusted = [r for r in increments if r["time"] < 1.0 or (r["balance_error"] <= MAX_BALANCE_ERROR
                                                               and r["medial"]["force_n"] + r["lateral"]["force_n"] > 0)]
