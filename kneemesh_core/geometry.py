@@ -1,4 +1,5 @@
-"""Small vector helpers on arrays of points, shared by the mesher, the blend and the anatomy.
+"""Small vector helpers on arrays of points, shared by the mesher, the blend, the anatomy, the FE
+model and the metrics.
 
 All take and return plain arrays in LPS mm; shapes are in each docstring.
 """
@@ -25,6 +26,15 @@ def quad_node_normals(points: np.ndarray, quads: np.ndarray) -> np.ndarray:
     normal = np.zeros((len(points), 3))
     np.add.at(normal, quads.ravel(), np.repeat(qn, 4, axis=0))
     return normal
+
+
+def quad_node_areas(points: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """Each node's share (P,) of the area of the quads (Q, 4) around it, a quarter of each quad's
+    (two triangles), in the units of ``points`` (P, 3) squared."""
+    p = points[quads]
+    area = 0.5 * (np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+                  + np.linalg.norm(np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]), axis=1))
+    return np.bincount(quads.ravel(), np.repeat(area / 4, 4), minlength=len(points))
 
 
 def interpolate_layers(bottom: np.ndarray, top: np.ndarray, layers: int) -> np.ndarray:

@@ -10,8 +10,8 @@ report progress the same way, and a restarted API loses nothing.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import datetime as dt
+import hashlib
 import json
 import time
 import uuid

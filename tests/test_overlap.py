@@ -8,7 +8,8 @@ import pyvista as pv
 
 from kneemesh_core.job.verdict import knee_verdict
 from kneemesh_core.metrics.compare import articular_surface
-from kneemesh_core.metrics.overlap import MAX_SEATABLE_OVERLAP_MM, closed_surface, knee_overlaps, node_areas, overlap
+from kneemesh_core.geometry import quad_node_areas as node_areas
+from kneemesh_core.metrics.overlap import MAX_SEATABLE_OVERLAP_MM, closed_surface, knee_overlaps, overlap
 
 
 def slab(x: tuple[float, float], y: tuple[float, float], z: tuple[float, float], h: float = 1.0, layers: int = 2) -> pv.UnstructuredGrid:

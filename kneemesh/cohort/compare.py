@@ -11,13 +11,11 @@ import pyvista as pv
 import SimpleITK as sitk
 
 from kneemesh_core.errors import KneeMeshError
+from kneemesh_core.fe.run import RESULT_FILES
 from kneemesh_core.io.files import atomic_write_text
 from kneemesh_core.job.outputs import LABELS_FILE, MESHES_DIR
 from kneemesh_core.metrics.compare import contact_differences, dice, surface_deviation
 from kneemesh_core.tissues import CARTILAGES
-
-#: Where a job keeps simulation results, the full flexion first.
-RESULTS = ("fe/results.json", "fe/smoke/results.json")
 
 
 def _results(folder: Path, name: str) -> dict | None:
@@ -41,7 +39,7 @@ def compare(a: Path, b: Path, out: Path) -> dict:
         if fa.exists() and fb.exists():
             deviations[t] = surface_deviation(pv.read(fa), pv.read(fb))
     summary["surface_deviation_mm"] = {t: {k: v for k, v in d.items() if k != "distances_mm"} for t, d in deviations.items()}
-    kind = next((n for n in RESULTS if (a / n).exists() and (b / n).exists()), None)
+    kind = next((n for n in RESULT_FILES if (a / n).exists() and (b / n).exists()), None)
     if kind:
         ra, rb = _results(a, kind), _results(b, kind)
         summary["contact"] = {"results": kind, "completed": [ra["completed"], rb["completed"]],

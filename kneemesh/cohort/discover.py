@@ -15,8 +15,8 @@ import SimpleITK as sitk
 
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.io import dicom
+from kneemesh_core.io.volumes import IMAGE_SUFFIXES, volume_suffix
 
-VOLUME_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".mha", ".mhd")
 #: A volume with an integer type and at most this many distinct values is a label map.
 MAX_LABELS = 32
 #: OAI visits as written in names: 00m, 12m (months), M12 (after a subject id too: 9003406M12), V01.
@@ -37,11 +37,9 @@ class Knee:
     files: tuple[Path, ...] = field(default=(), compare=False)  # a DICOM series' files, uploaded as a zip
 
 
-def _strip(name: str) -> str:
-    for s in VOLUME_SUFFIXES:
-        if name.lower().endswith(s):
-            return name[: -len(s)]
-    return name
+def _stem(path: Path) -> str:
+    """A volume's path without its volume suffix (``.nii.gz`` whole), posix."""
+    return path.as_posix()[: -len(volume_suffix(path))]
 
 
 def visit_of(text: str) -> str | None:
@@ -86,25 +84,15 @@ def _files(root: Path) -> list[Path]:
     return out
 
 
-def _series(folder: Path) -> list[tuple[list[str], dict]]:
-    out = []
-    for sid in sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder)) or ():
-        files = list(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), sid))
-        if files:
-            out.append((files, dicom.series_meta(files[0])))
-    return out
-
-
 def _dicom_knees(root: Path) -> list[Knee]:
     """One knee per folder that holds DICOM files: its sagittal 3D DESS series (by the headers)."""
     knees = []
     folders = sorted({p.parent for p in _files(root) if dicom.looks_like_dicom(p)})
     for folder in folders:
-        series = _series(folder)
-        dess = [s for s in series if dicom.is_sagittal_3d_dess(s[1])]
+        dess = [s for s in dicom.series_in(folder) if dicom.is_sagittal_3d_dess(s[2])]
         if not dess:
             continue
-        files, meta = max(dess, key=lambda s: len(s[0]))  # a localiser repeat is shorter
+        _, files, meta = max(dess, key=lambda s: len(s[1]))  # a localiser repeat is shorter
         rel = folder.relative_to(root).as_posix() or folder.name
         text = f"{rel} {meta.get('series_description', '')}"
         side = {"L": "left", "R": "right"}.get(meta.get("laterality", "")[:1].upper()) or side_of(text)
@@ -154,11 +142,11 @@ def find_knees(cohort: Path, input_type: str | None = None) -> list[Knee]:
     if not cohort.is_dir():
         raise KneeMeshError("not_found", f"{cohort}: expected a cohort folder (DICOM series or NIfTI/NRRD/MHA volumes) "
                                          "or a CSV manifest with columns id, path[, side, input_type, visit].")
-    knees = [Knee(_strip(p.relative_to(cohort).as_posix()), p, input_type or input_type_of(p),
-                  side_of(_strip(p.name)), visit_of(p.relative_to(cohort).as_posix()))
-             for p in _files(cohort) if p.name.lower().endswith(VOLUME_SUFFIXES)]
+    volumes = [p for p in _files(cohort) if volume_suffix(p) in IMAGE_SUFFIXES]
+    knees = [Knee(_stem(p.relative_to(cohort)), p, input_type or input_type_of(p), side_of(_stem(Path(p.name))),
+                  visit_of(p.relative_to(cohort).as_posix())) for p in volumes]
     knees += _dicom_knees(cohort)
     if not knees:
-        raise KneeMeshError("no_knees", f"{cohort}: no volumes (.nii.gz, .nii, .nrrd, .mha) and no sagittal 3D DESS "
+        raise KneeMeshError("no_knees", f"{cohort}: no volumes ({', '.join(IMAGE_SUFFIXES)}) and no sagittal 3D DESS "
                                         "DICOM series were found.")
     return sorted(knees, key=lambda k: k.id)

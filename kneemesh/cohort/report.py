@@ -19,12 +19,12 @@ import numpy as np
 
 from kneemesh.cohort.submit import DONE, STATE_FILE
 from kneemesh_core import __version__
+from kneemesh_core.fe.run import RESULT_FILES
 from kneemesh_core.io.files import atomic_write_text
 from kneemesh_core.job import REPORT_FILE
 from kneemesh_core.tissues import CARTILAGES, TISSUES
 
 REPORT_HTML = "report.html"
-RESULTS = ("fe/results.json", "fe/smoke/results.json")
 
 
 def collect(root: Path) -> dict:
@@ -35,7 +35,7 @@ def collect(root: Path) -> dict:
             continue  # a download in progress, or a step record named report.json
         kid = f.parent.relative_to(root).as_posix()
         knees[kid] = json.loads(f.read_text())
-        for name in RESULTS:
+        for name in RESULT_FILES:
             if (f.parent / name).exists():
                 results[kid] = json.loads((f.parent / name).read_text())
                 break

@@ -12,12 +12,12 @@ checked against the job's SHA-256 manifest; ``summary.csv`` has a row per knee.
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
 import json
 import shutil
 import threading
 import time
+import uuid
 import zipfile
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
@@ -27,6 +27,7 @@ from kneemesh.cohort.client import Api, Rejected, Unreachable
 from kneemesh.cohort.discover import Knee
 from kneemesh_core.io.files import atomic_write_json, atomic_write_text
 from kneemesh_core.job import BUNDLE_FILE, MANIFEST_FILE, REPORT_FILE
+from kneemesh_core.job.outputs import sha256
 from kneemesh_core.tissues import BONES, CARTILAGES
 
 STATE_FILE = "kneemesh-submit.json"
@@ -42,7 +43,7 @@ class State:
     def __init__(self, path: Path, server: str, options: dict):
         self.path, self.lock = path, threading.Lock()
         data = json.loads(path.read_text()) if path.exists() else {}
-        self.cohort = data.get("cohort") or hashlib.sha256(f"{path.resolve()}{time.time_ns()}".encode()).hexdigest()[:16]
+        self.cohort = data.get("cohort") or uuid.uuid4().hex[:16]  # names this cohort's Idempotency-Keys
         self.server, self.options, self.knees = server, options, data.get("knees", {})
         self._write()
 
@@ -66,7 +67,7 @@ def _verified(folder: Path, manifest: list[dict]) -> bool:
         if a["name"] == BUNDLE_FILE:
             continue
         f = folder / a["name"]
-        if not f.is_file() or f.stat().st_size != a["size"] or hashlib.sha256(f.read_bytes()).hexdigest() != a["sha256"]:
+        if not f.is_file() or f.stat().st_size != a["size"] or sha256(f) != a["sha256"]:
             return False
     return True
 

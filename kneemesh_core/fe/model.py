@@ -44,6 +44,7 @@ import numpy as np
 import pyvista as pv
 
 from kneemesh_core.errors import KneeMeshError
+from kneemesh_core.geometry import quad_node_areas
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES
 
 #: Cartilage modulus behind the contact stiffness, MPa (instantaneous compressive modulus of
@@ -256,13 +257,10 @@ def _move(m: Model, body: str, shift: np.ndarray) -> None:
 
 
 def _node_areas(m: Model, tissue: str) -> np.ndarray:
-    """Tributary area (mm^2) of each articular node of ``tissue`` (a quarter of each quad it is a
-    corner of), in the order of :func:`_articular_faces`'s ids."""
+    """Tributary area (mm^2) of each articular node of ``tissue``, in the order of
+    :func:`_articular_faces`'s ids."""
     quads, ids = _articular_faces(m, tissue)
-    p = np.stack([m.nodes[int(i)] for i in ids])[np.searchsorted(ids, quads)]  # (Q, 4, 3)
-    area = 0.5 * (np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-                  + np.linalg.norm(np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]), axis=1))
-    return np.bincount(np.searchsorted(ids, quads).ravel(), np.repeat(area / 4, 4), minlength=len(ids))
+    return quad_node_areas(np.stack([m.nodes[int(i)] for i in ids]), np.searchsorted(ids, quads))
 
 
 def preload_depth(gaps_mm: list[np.ndarray], areas_mm2: list[np.ndarray], k_n_mm3: list[float], load_n: float) -> float:

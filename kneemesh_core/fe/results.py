@@ -18,6 +18,7 @@ import numpy as np
 
 from kneemesh_core.fe.model import TRANSITION_STRAIN
 
+RESULTS_FILE, CONTACT_FIGURE = "results.json", "contact.png"
 _STATS = re.compile(r"^\s*statistics for slave set (\S+), master set (\S+) and time\s+(\S+)")
 _TABLE = re.compile(r"^\s*(displacements|forces|total force|contact stress)\b.*?(?:for set (\S+)|for all contact elements)\s+and time\s+(\S+)")
 
@@ -70,7 +71,9 @@ def parse_dat(path: Path, stopped: bool = False) -> dict:
                 break
         i += 1
     times = [*contact, *stress, *(t for table in nodes.values() for t in table)]
-    drop = {cut_at} | ({max(times)} if stopped and times else set())  # increments that may be incomplete
+    drop = {cut_at} if cut_at is not None else set()  # increments that may be incomplete
+    if stopped and times:
+        drop.add(max(times))
     for t in drop:
         contact.pop(t, None)
         stress.pop(t, None)
@@ -165,9 +168,9 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
               "applied_load_n": meta["joint_load_n"], "quadriceps_n": meta["quadriceps_n"],
               "target_flexion_deg": meta["flexion_deg"], "reached_flexion_deg": round(reached, 3),
               "contact_stiffness_n_mm3": meta["contact_k"], "seating": meta["seating"], "increments": increments}
-    (folder / "results.json").write_text(json.dumps(result, indent=1))
+    (folder / RESULTS_FILE).write_text(json.dumps(result, indent=1))
     if increments:
-        plot(result, folder / "contact.png")
+        plot(result, folder / CONTACT_FIGURE)
     return result
 
 

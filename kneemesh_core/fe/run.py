@@ -12,10 +12,12 @@ from pathlib import Path
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.fe import deck
 from kneemesh_core.fe.model import LoadCase, build
-from kneemesh_core.fe.results import write_results
+from kneemesh_core.fe.results import RESULTS_FILE, write_results
 from kneemesh_core.fe.simulate import run_ccx
 
-FE_DIR = "fe"
+FE_DIR, SMOKE_DIR = "fe", "smoke"
+#: Where a job's results lie, relative to the job folder: the full flexion first, then the smoke run.
+RESULT_FILES = (f"{FE_DIR}/{RESULTS_FILE}", f"{FE_DIR}/{SMOKE_DIR}/{RESULTS_FILE}")
 #: The smoke run: flexion and increment, deg.
 SMOKE = (15.0, 5.0)
 
@@ -42,7 +44,7 @@ def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = Fals
     folder = fe
     if smoke or flexion_deg is not None:
         flex, step = SMOKE if smoke else (flexion_deg, load.max_increment_deg)
-        folder = fe / ("smoke" if smoke else f"flexion_{flex:g}")
+        folder = fe / (SMOKE_DIR if smoke else f"flexion_{flex:g}")
         deck.write(m or build(out_dir, load), folder, flex, step, include=f"../{deck.MODEL_FILE}")
     meta_file = folder / deck.META_FILE
     if not meta_file.exists():

@@ -71,15 +71,22 @@ def boundary_surface(grid: pv.UnstructuredGrid) -> pv.PolyData:
     return grid.extract_surface(algorithm="dataset_surface").triangulate()
 
 
-def usable(s: dict) -> bool:
-    """Short of the gate (perhaps) but usable for finite elements (:mod:`.targets`): shipped for review."""
-    return (s["min_scaled_jacobian"] >= USABLE_MIN_SCALED_JACOBIAN and s["frac_sj_below_0_5"] <= USABLE_FRAC_BELOW
-            and s["collapsed"] == 0 and s["inverted"] == 0 and s["frac_edge_ratio_above_6"] <= USABLE_FRAC_EDGE_RATIO
+def _within(s: dict, min_sj: float, max_frac_below: float | None, max_frac_edge_ratio: float) -> bool:
+    """A :func:`summary`'s mesh: every element at least ``min_sj``, at most ``max_frac_below`` of
+    them below MIN_SCALED_JACOBIAN (None: implied by ``min_sj``) and ``max_frac_edge_ratio`` beyond
+    the edge ratio, nothing collapsed or inverted, and (where it was measured) a boundary that does
+    not cross itself."""
+    return (s["min_scaled_jacobian"] >= min_sj and (max_frac_below is None or s["frac_sj_below_0_5"] <= max_frac_below)
+            and s["collapsed"] == 0 and s["inverted"] == 0 and s["frac_edge_ratio_above_6"] <= max_frac_edge_ratio
             and s.get("self_intersections", 0) == 0)
 
 
+def usable(s: dict) -> bool:
+    """Short of the gate (perhaps) but usable for finite elements (:mod:`.targets`): shipped for review."""
+    return _within(s, USABLE_MIN_SCALED_JACOBIAN, USABLE_FRAC_BELOW, USABLE_FRAC_EDGE_RATIO)
+
+
 def passes_gate(s: dict) -> bool:
-    """The pre-blending gate (:mod:`.targets`): min SJ, nothing collapsed or inverted, the edge ratio
-    for all but a sliver of elements, and (where it was measured) a boundary that does not cross itself."""
-    return (s["min_scaled_jacobian"] >= MIN_SCALED_JACOBIAN and s["collapsed"] == 0 and s["inverted"] == 0
-            and s["frac_edge_ratio_above_6"] <= MAX_FRAC_EDGE_RATIO and s.get("self_intersections", 0) == 0)
+    """The pre-blending gate (:mod:`.targets`): every element at MIN_SCALED_JACOBIAN or better, the
+    edge ratio for all but a sliver of elements, nothing collapsed, inverted or crossing."""
+    return _within(s, MIN_SCALED_JACOBIAN, None, MAX_FRAC_EDGE_RATIO)

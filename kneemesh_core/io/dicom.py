@@ -74,6 +74,16 @@ def is_sagittal_3d_dess(meta: dict) -> bool:
     return bool(abs(normal[0]) >= np.cos(np.radians(35.0)) * np.linalg.norm(normal))
 
 
+def series_in(folder: Path) -> list[tuple[str, list[str], dict]]:
+    """The DICOM series directly in ``folder``: (series id, its files in order, header facts)."""
+    out = []
+    for sid in sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder)) or ():
+        files = list(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), sid))
+        if files:
+            out.append((sid, files, series_meta(files[0])))
+    return out
+
+
 def read_series(folder: Path, label: str | None = None) -> tuple[sitk.Image, dict]:
     """Read one DICOM series from a folder tree.
 
@@ -81,13 +91,8 @@ def read_series(folder: Path, label: str | None = None) -> tuple[sitk.Image, dic
     not unique a :class:`KneeMeshError` (``dicom_ambiguous``) lists them all.
     """
     name = label or folder.name
-    series: list[tuple[str, list[str], dict]] = []
     dirs = [folder] + sorted(p for p in folder.rglob("*") if p.is_dir())
-    for d in dirs:
-        for sid in sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(d)) or ():
-            files = list(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(d), sid))
-            if files:
-                series.append((sid, files, series_meta(files[0])))
+    series = [s for d in dirs for s in series_in(d)]
     if not series:
         raise KneeMeshError(
             "not_an_image",

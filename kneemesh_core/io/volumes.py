@@ -29,7 +29,8 @@ MAX_VOXELS = 512 * 1024 * 1024
 #: Plausible voxel spacing range for knee MRI, mm.
 SPACING_RANGE_MM = (0.05, 10.0)
 
-_IMAGE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
+#: The volume formats read (a DICOM series is a folder or a .zip).
+IMAGE_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
 
 
 @dataclass
@@ -53,9 +54,10 @@ class Volume:
     meta: dict = field(default_factory=dict)
 
 
-def _suffix(path: Path) -> str:
+def volume_suffix(path: Path) -> str:
+    """The file's volume suffix in lower case (``.nii.gz`` whole), else its last suffix."""
     name = path.name.lower()
-    for s in (".nii.gz",) + _IMAGE_SUFFIXES:
+    for s in IMAGE_SUFFIXES:
         if name.endswith(s):
             return s
     return path.suffix.lower()
@@ -129,7 +131,7 @@ def _read_file(p: Path) -> tuple[sitk.Image, dict]:
         raise KneeMeshError(
             "corrupt", f"{p.name}: the header was read but the voxel data is truncated or corrupt."
         ) from exc
-    if _suffix(p) in (".nii", ".nii.gz"):
+    if volume_suffix(p) in (".nii", ".nii.gz"):
         _check_nifti_complete(p)
     meta: dict = {}
     if dicom.looks_like_dicom(p):

@@ -82,8 +82,10 @@ def tissue_verdict(tissue_is_bone: bool, e: dict) -> tuple[str, list[str]]:
 def knee_verdict(report: dict) -> dict:
     """The knee's verdict: the worst of its segmentation (an image), tissues, anatomy, decks,
     simulation and overlaps, every reason named."""
-    parts = {**{k: report[k] for k in ("segmentation",) if k in report}, **report.get("tissues", {}),
-             **{k: report[k] for k in ("anatomy", "fe", "simulation", "overlaps") if k in report}}
+    def present(*keys: str) -> dict:
+        return {k: report[k] for k in keys if k in report}
+
+    parts = {**present("segmentation"), **report.get("tissues", {}), **present("anatomy", "fe", "simulation", "overlaps")}
     reasons = []
     for name, e in parts.items():
         if e.get("status") == FAILED:

@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
+from kneemesh_core.geometry import quad_node_areas
+from kneemesh_core.hexmesh.quality import boundary_surface
 from kneemesh_core.metrics.compare import articular_surface
 
 #: Deepest cartilage-cartilage overlap the FE seating step resolves without leaving the image pose, mm.
@@ -30,18 +32,10 @@ BONE_PAIRS = (("femoral_cartilage", "tibia"), ("femoral_cartilage", "patella"), 
               ("lateral_tibial_cartilage", "femur"), ("patellar_cartilage", "femur"))
 
 
-def node_areas(points: np.ndarray, quads: np.ndarray) -> np.ndarray:
-    """Each node's share (mm^2) of the quads (Q, 4) around it: a quarter of each quad's area."""
-    p = points[quads]
-    area = 0.5 * (np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-                  + np.linalg.norm(np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]), axis=1))
-    return np.bincount(quads.ravel(), np.repeat(area / 4, 4), minlength=len(points))
-
-
 def closed_surface(mesh: pv.DataSet) -> pv.PolyData:
     """A mesh's boundary as triangles with outward normals (a bone shell, or a hex mesh's skin)."""
-    surface = mesh if isinstance(mesh, pv.PolyData) else mesh.extract_surface(algorithm="dataset_surface")
-    return surface.triangulate().compute_normals(cell_normals=True, point_normals=False, auto_orient_normals=True,
+    surface = mesh.triangulate() if isinstance(mesh, pv.PolyData) else boundary_surface(mesh)
+    return surface.compute_normals(cell_normals=True, point_normals=False, auto_orient_normals=True,
                                                  consistent_normals=True)
 
 
@@ -72,7 +66,7 @@ def knee_overlaps(meshes_dir: Path) -> dict:
         if cache[a] is None or cache[b] is None:
             continue
         points, quads = articular_surface(cache[a])
-        found = overlap(points, node_areas(points, quads), closed_surface(cache[b]))
+        found = overlap(points, quad_node_areas(points, quads), closed_surface(cache[b]))
         pairs[f"{a}/{b}"] = found
         if found["max_depth_mm"] > limit:
             reasons.append(f"{a.replace('_', ' ')} reaches {found['max_depth_mm']:.2f} mm into the {b.replace('_', ' ')} "
