@@ -5,7 +5,15 @@ end goes through its bone's registration and onto the subject's bone surface: it
 the nearest point of the surface, its ``node`` the nearest vertex of ``meshes/<bone>.vtp``.  Ends
 that Lenhart's model puts on the fibula (LCL, popliteofibular ligament) move with the tibia and
 stay on the registered template fibula (the job meshes no fibula): their ``node`` is null.
-Slack lengths scale with the mean registration scale of the fibre's two bones.
+
+Slack lengths come from each fibre's **reference strain**: the template fibre's strain in the
+template's neutral (extended) pose, ``e_ref = L_template / L0_template - 1``, is given to the
+subject's fibre in the image pose, ``L0 = L / (1 + e_ref)`` (the calibration of Lenhart 2015 and
+OpenSim JAM).  Scaling the template's slack length with the bones instead leaves a subject whose
+patella sits higher or lower than the template's with its patellar tendon 30-40 % stretched or
+slack in the image pose (seen on OAI 9357383: the seated patella was pulled 14 mm down and off
+the trochlea).  This assumes the image pose is near extension, as in OAI's DESS; a fibre with an
+unplaced end keeps the scaled template slack length.
 
 A registration whose residual is implausible (the bone is not what the template expects: a
 cropped or broken segmentation, a foreign object) is reported, and its sites are flagged.
@@ -87,13 +95,15 @@ def place(bones: dict[str, pv.PolyData], side: str, plates: tuple[np.ndarray, np
                 entry.update(node=int(trees[end.bone].query(closest[0])[1]), lps_mm=_round(closest[0]),
                              snapped_mm=round(float(np.linalg.norm(closest[0] - mapped)), 3))
             ends.append(entry)
-        scales = [regs[e.bone].similarity.scale for e in fibre.ends if e.bone in regs]
-        scale = float(np.mean(scales)) if scales else 1.0
+        strain = fibre.reference_strain
         item = {"name": fibre.name, "bundle": fibre.bundle, "stiffness_n": fibre.stiffness_n,
-                "slack_length_mm": round(fibre.slack_length_mm * scale, 3),
-                "template_slack_length_mm": fibre.slack_length_mm, "ends": ends}
+                "template_slack_length_mm": fibre.slack_length_mm, "reference_strain": round(strain, 4), "ends": ends}
         if all(e["lps_mm"] is not None for e in ends):
-            item["length_mm"] = round(float(np.linalg.norm(np.subtract(ends[0]["lps_mm"], ends[1]["lps_mm"]))), 3)
+            length = float(np.linalg.norm(np.subtract(ends[0]["lps_mm"], ends[1]["lps_mm"])))
+            item.update(length_mm=round(length, 3), slack_length_mm=round(length / (1.0 + strain), 3))
+        else:
+            scales = [regs[e.bone].similarity.scale for e in fibre.ends if e.bone in regs]
+            item["slack_length_mm"] = round(fibre.slack_length_mm * float(np.mean(scales or [1.0])), 3)
         if fibre.note:
             item["note"] = fibre.note
         fibres.append(item)

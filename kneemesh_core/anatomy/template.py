@@ -48,6 +48,12 @@ class Fibre:
     ends: tuple[FibreEnd, FibreEnd]
     note: str | None = None
 
+    @property
+    def reference_strain(self) -> float:
+        """The fibre's strain in the template's neutral pose, along the straight line between its ends
+        (Lenhart's wrapping fibres are longer than that line, so their straight-line strain is lower)."""
+        return float(np.linalg.norm(self.ends[0].point - self.ends[1].point) / self.slack_length_mm - 1.0)
+
 
 @dataclass(frozen=True)
 class Template:
