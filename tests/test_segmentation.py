@@ -104,6 +104,30 @@ def test_clean_classes_keeps_the_anatomy_and_drops_islands():
     assert (out == 6).sum() == 8
 
 
+def test_clean_classes_cuts_a_bone_leaking_through_a_bridge_and_keeps_the_patella_in_front():
+    """PIR slices (S, H, W): W runs anterior to posterior.  A femur joined by a 1 mm bridge to a
+    block in the air in front of the knee, a true patella in front of the femoral cartilage and a
+    false one (with 'patellar cartilage') behind the femur, as the network read the real DESS."""
+    sp = (1.0, 0.4, 0.4)
+    c = np.zeros((30, 100, 140), np.uint8)
+    c[5:25, 20:60, 50:90] = 1  # femur
+    c[5:25, 60:64, 50:90] = 4  # its cartilage, distally
+    c[5:25, 30:50, 40:50] = 4  # and the trochlea, in front
+    c[5:25, 64:90, 50:90] = 2  # tibia
+    c[5:25, 64:66, 50:90] = 5
+    c[5:25, 2:16, 2:40] = 1  # a block of "femur" in the air in front, above the knee ...
+    c[14:16, 14:22, 38:52] = 1  # ... joined to the femur by a bridge 2 x 2 mm thin
+    c[5:25, 30:50, 20:36] = 3  # the patella, in front of the trochlea
+    c[5:25, 30:50, 36:38] = 6  # its cartilage
+    c[5:25, 40:60, 110:130] = 3  # a false patella behind the femur, bigger than the true one
+    c[5:25, 40:60, 108:110] = 6
+    out = clean_classes(c, sp)
+    assert (out[5:25, 2:16, 2:36] == 1).sum() == 0  # the block in the air is gone
+    assert (out[5:25, 20:60, 50:90] == 1).all()  # the femur is whole
+    assert (out[5:25, 40:60, 110:130] == 0).all() and (out[5:25, 40:60, 108:110] == 0).all()
+    assert (out[5:25, 30:50, 20:36] == 3).all() and (out[5:25, 30:50, 36:38] == 6).all()
+
+
 def test_compare_metrics():
     a = np.zeros((20, 40, 40), np.uint8)
     a[5:15, 10:30, 10:30] = LABEL["femur"]

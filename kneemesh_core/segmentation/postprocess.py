@@ -1,58 +1,168 @@
-"""Clean the network's class map before it becomes canonical labels.
+"""Clean the network's class map before it becomes canonical labels, by anatomy.
 
-Per tissue: keep the largest connected component (for a bone: the one with
-the most contact with its cartilage, so a dark region read as bone away from
-the joint is dropped; the patellar cartilage), or the components at least 5 %
-the size of the largest
-(femoral cartilage, which lesions and full-thickness defects may cut in
-pieces; the tibial class, which is two plates); fill holes smaller than
-``max_hole_ml`` inside each bone; dropped voxels become background.  The tibial
-class is then split into medial and lateral plates by the same anatomy the
-label-map path uses (:func:`kneemesh_core.knee.canonicalise`).
+Per tissue, in order:
+
+1. **Bones are opened before their piece is chosen.**  A bone class is eroded by
+   :data:`OPENING_MM`; of the cores left, the one against its cartilage is kept and grown back
+   within the class by :data:`REGROW_MM`.  Bridges thinner than twice the opening, through which
+   a network's bone class leaks into air, fat or muscle beside the knee, are cut (the real
+   pyKNEEr DESS: a 538 ml "femur" of which 137 ml is the femur).
+2. **The patella is the piece in front of the femur, against the femoral cartilage** (not just
+   the piece its cartilage touches: on the real DESS the network read calf muscle as patellar
+   cartilage and patella behind the femur).  The patellar cartilage is then kept only where it
+   rests on that patella.
+3. Femoral and tibial cartilage keep every piece at least 5 % the size of the largest (lesions
+   and full-thickness defects cut them in pieces; the tibial class is two plates).
+4. Small holes inside each bone (marrow lesions read as another tissue) are filled.
+
+Dropped voxels become background.  The tibial class is then split into medial and lateral plates
+by the same anatomy the label-map path uses (:func:`kneemesh_core.knee.canonicalise`).
+
+Arrays are the network's slices, (S, H, W) in ``PIR`` order: W runs anterior to posterior,
+H superior to inferior (:mod:`.preprocess`).
 """
 
 from __future__ import annotations
 
 import numpy as np
+import SimpleITK as sitk
 from scipy import ndimage as ndi
 
+FEMUR, TIBIA, PATELLA, FC, TC, PC = 1, 2, 3, 4, 5, 6
 #: Bone class -> the cartilage class on it.
-CARTILAGE_OF = {1: 4, 2: 5, 3: 6}
-#: Network class -> keep only the largest component (True) or every piece >= 5 % of it (False).
-LARGEST_ONLY = {1: True, 2: True, 3: True, 4: False, 5: False, 6: True}
+CARTILAGE_OF = {FEMUR: FC, TIBIA: TC, PATELLA: PC}
+#: A bone is eroded by this much (mm) before its piece is chosen ...
+OPENING_MM = 2.0
+#: ... and the chosen core grown back within the class by this much (twice the erosion: a thin
+#: osteophyte or spine up to this long survives the opening).
+REGROW_MM = 4.0
+#: The patella's core must lie within this distance (mm) of the femoral cartilage.
+PATELLA_REACH_MM = 10.0
+
+
+def _edt(mask: np.ndarray, spacing) -> np.ndarray:
+    """Distance (mm) of each True voxel to the nearest False one (0 on False voxels).
+
+    SimpleITK's Maurer transform (multithreaded): the same figures as scipy's
+    ``distance_transform_edt`` to 1e-4 mm, 4x faster on a DESS volume.
+    """
+    image = sitk.GetImageFromArray((~mask).astype(np.uint8))
+    image.SetSpacing(tuple(float(s) for s in spacing[::-1]))
+    d = sitk.GetArrayFromImage(sitk.SignedMaurerDistanceMap(image, insideIsPositive=False, squaredDistance=False,
+                                                            useImageSpacing=True))
+    return np.maximum(d, 0.0)
+
+
+def _components(mask: np.ndarray) -> tuple[np.ndarray, int]:
+    return ndi.label(mask)
+
+
+def _largest(values: np.ndarray) -> np.ndarray:
+    """Boolean over components 1..n: the one with the largest value (ties: the first)."""
+    keep = np.zeros(len(values), bool)
+    if len(values) and values.max() > 0:
+        keep[int(values.argmax())] = True
+    return keep
+
+
+def _box(mask: np.ndarray, margin_mm: float, spacing) -> tuple[slice, ...]:
+    """The bounding box of ``mask`` grown by ``margin_mm`` (clipped to the array)."""
+    box = ndi.find_objects(mask.astype(np.uint8))[0]
+    return tuple(slice(max(0, b.start - int(np.ceil(margin_mm / s))), min(n, b.stop + int(np.ceil(margin_mm / s))))
+                 for b, s, n in zip(box, spacing, mask.shape))
+
+
+def _bone(out: np.ndarray, c: int, spacing, anchor: np.ndarray | None = None, reach_mm: float = REGROW_MM,
+          in_front_of: float | None = None) -> np.ndarray:
+    """Keep one piece of bone class ``c`` in ``out`` (in place); returns its mask (whole array).
+
+    ``anchor``: the tissue the bone lies against (its cartilage; the femoral cartilage for the
+    patella); of the bone's cores, the one with the most voxels within ``reach_mm`` of it is kept,
+    else the largest core.  ``in_front_of``: a column (W index); cores whose centroid is not
+    anterior to it are refused.
+    """
+    whole = out == c
+    if not whole.any():
+        return whole
+    box = _box(whole, reach_mm + REGROW_MM, spacing)
+    mask, view = whole[box], out[box]
+    # the cores on a grid of about half the opening in-plane (a DESS's 0.3 mm pixels: 4x fewer voxels)
+    k = max(1, int(OPENING_MM / 2 / min(spacing[1:])))
+    coarse = (spacing[0], spacing[1] * k, spacing[2] * k)
+    core, n = _components(_edt(mask[:, ::k, ::k], coarse) > OPENING_MM)
+    if n == 0:  # thinner than the opening everywhere: its largest piece as it is
+        comp, m = _components(mask)
+        kept = np.concatenate([[False], _largest(np.bincount(comp.ravel(), minlength=m + 1)[1:])])[comp]
+    else:
+        score = np.bincount(core.ravel(), minlength=n + 1)[1:].astype(float)
+        near_anchor = None if anchor is None else anchor[box][:, ::k, ::k]
+        if near_anchor is not None and near_anchor.any():
+            around = _box(near_anchor, reach_mm, coarse)  # distances only near the anchor
+            near = np.bincount(core[around][_edt(~near_anchor[around], coarse) <= reach_mm],
+                               minlength=n + 1)[1:].astype(float)
+            if near.max() > 0:
+                score = near
+        if in_front_of is not None:
+            cols = np.array(ndi.center_of_mass(core > 0, core, np.arange(1, n + 1)))[:, 2] * k + box[2].start
+            score = np.where(cols < in_front_of, score, 0.0)
+        chosen = np.concatenate([[False], _largest(score)])[core]
+        kept = np.repeat(np.repeat(chosen, k, 1), k, 2)[:, :mask.shape[1], :mask.shape[2]] & mask
+        if kept.any():
+            grow = _box(kept, REGROW_MM, spacing)
+            kept[grow] = (_edt(~kept[grow], spacing) <= REGROW_MM) & mask[grow]
+    view[mask & ~kept] = 0
+    whole[box] = kept
+    return whole
+
+
+def _pieces(out: np.ndarray, c: int, min_share: float = 0.05) -> None:
+    """Keep every piece of class ``c`` at least ``min_share`` the size of its largest (in place)."""
+    mask = out == c
+    comp, n = _components(mask)
+    if n > 1:
+        sizes = np.bincount(comp.ravel())[1:]
+        out[mask & ~np.concatenate([[False], sizes >= min_share * sizes.max()])[comp]] = 0
+
+
+def _fill_holes(out: np.ndarray, c: int, max_voxels: float) -> None:
+    box = ndi.find_objects((out == c).astype(np.uint8))
+    if not box:
+        return
+    bone = out[box[0]]  # a view: the kept bone's own box
+    solid = bone == c
+    holes, m = ndi.label(ndi.binary_fill_holes(solid) & ~solid)
+    if m:
+        small = np.bincount(holes.ravel())[1:] <= max_voxels
+        bone[np.concatenate([[False], small])[holes]] = c
 
 
 def clean_classes(classes: np.ndarray, spacing_zyx: tuple[float, float, float], max_hole_ml: float = 1.0) -> np.ndarray:
-    """A cleaned copy of a class map (Z, Y, X) uint8 in network classes (spacing in mm, numpy order).
-
-    Each class is cleaned within its own bounding box (a few per cent of the volume for most),
-    which keeps this a fraction of the inference time.
-    """
+    """A cleaned copy of a class map (S, H, W) uint8 in network classes, ``PIR`` slices (spacing
+    in mm, numpy order)."""
     out = classes.copy()
-    voxel_ml = float(np.prod(spacing_zyx)) / 1000.0
-    boxes = ndi.find_objects(out, max_label=max(LARGEST_ONLY))
-    for c, largest_only in LARGEST_ONLY.items():
-        box = boxes[c - 1]
-        if box is None:
-            continue
-        view = out[box]  # a view: changes land in ``out``
-        mask = view == c
-        comp, n = ndi.label(mask)
-        if n > 1:
-            sizes = np.bincount(comp.ravel())[1:]
-            if c in CARTILAGE_OF:  # a bone is the piece its cartilage lies on, whatever else looks like bone
-                touch = np.bincount(comp[ndi.binary_dilation(view == CARTILAGE_OF[c]) & mask], minlength=n + 1)[1:]
-                sizes = np.where(touch.max() > 0, touch, sizes)
-            keep = sizes == sizes.max() if largest_only else sizes >= 0.05 * sizes.max()
-            view[mask & ~np.concatenate([[False], keep])[comp]] = 0
-        if c in (1, 2, 3):  # bones are solid: fill their small holes (marrow lesions read as other tissue)
-            kept = ndi.find_objects((view == c).astype(np.uint8))
-            if not kept:
-                continue
-            bone = view[kept[0]]  # the kept bone's own box: stray voxels dropped above no longer widen it
-            solid = bone == c
-            holes, m = ndi.label(ndi.binary_fill_holes(solid) & ~solid)
-            if m:
-                small = np.bincount(holes.ravel())[1:] * voxel_ml <= max_hole_ml
-                bone[np.concatenate([[False], small])[holes]] = c
+    spacing = tuple(float(s) for s in spacing_zyx)
+    for cart in (FC, TC):
+        _pieces(out, cart)
+    fc = out == FC
+    femur = _bone(out, FEMUR, spacing, fc)
+    _bone(out, TIBIA, spacing, out == TC)
+    # the patella: in front of the femur's middle, against the femoral cartilage
+    front = ndi.center_of_mass(femur)[2] if femur.any() else None
+    patella = _bone(out, PATELLA, spacing, fc, PATELLA_REACH_MM, front)
+    # the patellar cartilage: the pieces that rest on the kept patella (the largest if there is none)
+    pc = out == PC
+    if pc.any():
+        comp, n = _components(pc)
+        if patella.any():
+            box = _box(patella, 2 * OPENING_MM, spacing)
+            near = np.zeros_like(pc)
+            near[box] = _edt(~patella[box], spacing) <= OPENING_MM
+            on = np.bincount(comp[near], minlength=n + 1)[1:] > 0
+        else:
+            sizes = np.bincount(comp.ravel(), minlength=n + 1)[1:]
+            on = _largest(sizes)
+        out[pc & ~np.concatenate([[False], on])[comp]] = 0
+    max_voxels = max_hole_ml * 1000.0 / float(np.prod(spacing))
+    for bone in (FEMUR, TIBIA, PATELLA):
+        _fill_holes(out, bone, max_voxels)
     return out
