@@ -58,6 +58,12 @@ PAIRS = {"medial": ("medial_tibial_cartilage", "femoral_cartilage"),
          "patellofemoral": ("patellar_cartilage", "femoral_cartilage")}
 #: Stabilising springs on the free degrees of freedom: N/mm and N mm/rad.
 STABILISER_N_MM, STABILISER_NMM_RAD = 5.0, 2000.0
+#: A seating deeper than this share of the tibiofemoral cartilage layers' combined thickness means
+#: the cartilages meet over too small an area to carry the joint load as cartilage: no cartilage
+#: is squeezed by three quarters.  The sample seats at 0.22 and OAI 9357383_00m at 0.29 (0.95 and
+#: 1.35 mm; the real maps 1.0-2.2 mm); a severity-3 phantom whose medial plate was meshed over 80 %
+#: of its label needed 4.1 mm, 1.28, and did not converge.
+MAX_PRELOAD_STRAIN = 0.75
 #: Where the quadriceps pulls from: this far up the femoral shaft (deck Z), mm; and how far it is
 #: drawn up to reach its force (the spring's force then stays nearly constant).
 QUADRICEPS_ORIGIN_MM, QUADRICEPS_DRAW_MM = 60.0, 5.0
@@ -311,4 +317,6 @@ def seat(m: Model) -> dict:
                                    "patellofemoral": overlap(pf_before)},
             "initial_overlap_nodes": {k: int((v < 0).sum()) for k, v in (*before.items(), ("patellofemoral", pf_before))},
             "femur_shift_mm": round(femur_shift, 3), "preload_depth_mm": round(depth, 3),
+            "preload_strain": round(depth / float(np.mean([m.parts[s].thickness_mm + m.parts[f].thickness_mm
+                                                           for s, f in (PAIRS["medial"], PAIRS["lateral"])])), 3),
             "patella_shift_mm": round(patella_shift, 3)}

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kneemesh_core.fe.model import TRANSITION_STRAIN
+from kneemesh_core.fe.model import MAX_PRELOAD_STRAIN, TRANSITION_STRAIN
 
 RESULTS_FILE, CONTACT_FIGURE = "results.json", "contact.png"
 _STATS = re.compile(r"^\s*statistics for slave set (\S+), master set (\S+) and time\s+(\S+)")
@@ -164,7 +164,14 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
         trusted = increments[:cut]
     reached = max((r["flexion_deg"] or 0.0 for r in trusted), default=0.0)
     completed = run.completed and invalid is None
-    result = {"solver": run.version, "completed": completed, "reason": run.reason or invalid, "seconds": round(run.seconds, 2),
+    reason = run.reason or invalid
+    seat = meta["seating"]
+    if not completed and seat.get("preload_strain", 0.0) > MAX_PRELOAD_STRAIN:
+        reason = (f"{reason}; the seated femur sank {seat['preload_depth_mm']} mm into the cartilage "
+                  f"({seat['preload_strain']:.0%} of the tibiofemoral layers' thickness) before they carried the joint load: "
+                  "they meet over a small area, where bone would touch bone through denuded or unmeshed cartilage, "
+                  "which the model leaves out")
+    result = {"solver": run.version, "completed": completed, "reason": reason, "seconds": round(run.seconds, 2),
               "applied_load_n": meta["joint_load_n"], "quadriceps_n": meta["quadriceps_n"],
               "target_flexion_deg": meta["flexion_deg"], "reached_flexion_deg": round(reached, 3),
               "contact_stiffness_n_mm3": meta["contact_k"], "seating": meta["seating"], "increments": increments}

@@ -232,7 +232,11 @@ def run_simulation(out_dir: str | os.PathLike, options: dict) -> dict:
     def work() -> dict:
         r = simulate(Path(out_dir), smoke=opts.simulate == "smoke", load=LoadCase(cartilage=opts.fe_cartilage))
         last = r["increments"][-1] if r["increments"] else {}
-        return {"status": "ok" if r["completed"] else "failed", "kind": opts.simulate, "completed": r["completed"],
+        # stopped part-way: the increments it reached are results (review); none reached: failed
+        status = "ok" if r["completed"] else "review" if r["reached_flexion_deg"] > 0 else "failed"
+        reasons = [] if r["completed"] else [f"stopped at {r['reached_flexion_deg']:g} of {r['target_flexion_deg']:g} deg: "
+                                             f"{r['reason']}"]
+        return {"status": status, "reasons": reasons, "kind": opts.simulate, "completed": r["completed"],
                 "reason": r["reason"], "solver": r["solver"], "solver_seconds": r["seconds"],
                 "reached_flexion_deg": r["reached_flexion_deg"], "target_flexion_deg": r["target_flexion_deg"],
                 "final": {k: last.get(k) for k in ("medial", "lateral", "patellofemoral", "balance_error")},
