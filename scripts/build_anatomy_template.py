@@ -60,6 +60,19 @@ def _surface(path: Path, spacing_mm: float = 1.5) -> pv.PolyData:
     return mesh.decimate_pro(target, preserve_topology=True).clean().compute_normals(auto_orient_normals=True)
 
 
+def reference_strains(msl: Path) -> dict[str, float]:
+    """Each fibre's ``ReferenceStrain`` in the SIMM file the model came from (its strain in the model's
+    reference pose, along its wrapped path), by muscle name."""
+    out, name = {}, None
+    for line in msl.read_text(errors="replace").splitlines():
+        words = line.split()
+        if words[:1] == ["beginmuscle"]:
+            name = words[1]
+        elif words[:1] == ["ReferenceStrain"] and name and len(words) > 1:
+            out[name] = float(words[1])
+    return out
+
+
 def lenhart_fibres(osim: Path) -> list[dict]:
     root = ET.parse(osim).getroot()
     out = []
@@ -83,6 +96,14 @@ def lenhart_fibres(osim: Path) -> list[dict]:
             fibre["ends"] = [{"body": b, "lenhart_mm": p} for b, p in pts]
         out.append(fibre)
     return out
+
+
+def add_reference_strains(fibres: list[dict], msl: Path) -> None:
+    """``reference_strain`` of each fibre from the SIMM file; the ITB, cut at the knee with its slack length
+    the cut segment's template length, has 0 by construction."""
+    strains = reference_strains(msl)
+    for f in fibres:
+        f["reference_strain"] = 0.0 if f["name"].startswith("ITB") else strains[f["name"]]
 
 
 def main() -> None:
@@ -122,6 +143,7 @@ def main() -> None:
           f"({np.linalg.norm(ff.origin - reg.similarity.translation):.1f} mm apart)")
 
     fibres = lenhart_fibres(args.lenhart / "lenhart2015.osim")
+    add_reference_strains(fibres, args.lenhart / "JKRLfbkid.msl")
     for f in fibres:
         for end in f["ends"]:
             bone = BODY[end["body"]]

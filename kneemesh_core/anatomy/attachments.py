@@ -6,14 +6,14 @@ the nearest point of the surface, its ``node`` the nearest vertex of ``meshes/<b
 that Lenhart's model puts on the fibula (LCL, popliteofibular ligament) move with the tibia and
 stay on the registered template fibula (the job meshes no fibula): their ``node`` is null.
 
-Slack lengths come from each fibre's **reference strain**: the template fibre's strain in the
-template's neutral (extended) pose, ``e_ref = L_template / L0_template - 1``, is given to the
-subject's fibre in the image pose, ``L0 = L / (1 + e_ref)`` (the calibration of Lenhart 2015 and
-OpenSim JAM).  Scaling the template's slack length with the bones instead leaves a subject whose
-patella sits higher or lower than the template's with its patellar tendon 30-40 % stretched or
-slack in the image pose (seen on OAI 9357383: the seated patella was pulled 14 mm down and off
-the trochlea).  This assumes the image pose is near extension, as in OAI's DESS; a fibre with an
-unplaced end keeps the scaled template slack length.
+Slack lengths come from each fibre's **reference strain**: Lenhart's model states each fibre's
+strain in its reference (extended) pose (``ReferenceStrain`` in its SIMM file), and the subject's
+fibre is given that strain in the image pose, ``L0 = L / (1 + e_ref)`` along the straight line
+between its ends (the calibration of Lenhart 2015 and OpenSim JAM).  Scaling the template's slack
+length with the bones instead left a knee whose patella sits higher than the template's with its
+patellar tendon 30-40 % stretched in the image pose (OAI 9357383: the seated patella was pulled
+14 mm down and off the trochlea).  This assumes the image pose is near extension, as in OAI's
+DESS; a fibre with an unplaced end keeps the scaled template slack length.
 
 A registration whose residual is implausible (the bone is not what the template expects: a
 cropped or broken segmentation, a foreign object) is reported, and its sites are flagged.

@@ -45,14 +45,9 @@ class Fibre:
     bundle: str  # e.g. "MCLs"
     stiffness_n: float  # Blankevoort linear stiffness, N per unit strain
     slack_length_mm: float  # in the template knee
+    reference_strain: float  # in the model's reference pose (extension), from its SIMM file
     ends: tuple[FibreEnd, FibreEnd]
     note: str | None = None
-
-    @property
-    def reference_strain(self) -> float:
-        """The fibre's strain in the template's neutral pose, along the straight line between its ends
-        (Lenhart's wrapping fibres are longer than that line, so their straight-line strain is lower)."""
-        return float(np.linalg.norm(self.ends[0].point - self.ends[1].point) / self.slack_length_mm - 1.0)
 
 
 @dataclass(frozen=True)
@@ -70,7 +65,7 @@ def load() -> Template:
     """The packaged template (read once per process)."""
     raw = json.loads(FIBRES_FILE.read_text())
     fibres = tuple(
-        Fibre(f["name"], f["bundle"], f["stiffness_n"], f["slack_length_mm"],
+        Fibre(f["name"], f["bundle"], f["stiffness_n"], f["slack_length_mm"], f["reference_strain"],
               tuple(FibreEnd(e["bone"], e["surface"], np.asarray(e["point_mm"], float)) for e in f["ends"]),
               f.get("note"))
         for f in raw["fibres"])

@@ -7,10 +7,11 @@ Per tissue, in order:
    within the class by :data:`REGROW_MM`.  Bridges thinner than twice the opening, through which
    a network's bone class leaks into air, fat or muscle beside the knee, are cut (the real
    pyKNEEr DESS: a 538 ml "femur" of which 137 ml is the femur).
-2. **The patella is the piece in front of the femur, against the femoral cartilage** (not just
-   the piece its cartilage touches: on the real DESS the network read calf muscle as patellar
-   cartilage and patella behind the femur).  The patellar cartilage is then kept only where it
-   rests on that patella.
+2. **The patella is the piece against the femoral cartilage** (within :data:`PATELLA_REACH_MM`),
+   or none: not the piece its own cartilage touches, because on the real DESS the network read calf
+   muscle as patellar cartilage and patella behind the femur.  The patellar cartilage is then kept
+   only where it rests on that patella.  (Not "in front of the femur" by the header's axes: the
+   Gibbons maps' headers do not put the patella in front.)
 3. Femoral and tibial cartilage keep every piece at least 5 % the size of the largest (lesions
    and full-thickness defects cut them in pieces; the tibial class is two plates).
 4. Small holes inside each bone (marrow lesions read as another tissue) are filled.
@@ -18,8 +19,7 @@ Per tissue, in order:
 Dropped voxels become background.  The tibial class is then split into medial and lateral plates
 by the same anatomy the label-map path uses (:func:`kneemesh_core.knee.canonicalise`).
 
-Arrays are the network's slices, (S, H, W) in ``PIR`` order: W runs anterior to posterior,
-H superior to inferior (:mod:`.preprocess`).
+Arrays are the network's slices, (S, H, W) (:mod:`.preprocess`).
 """
 
 from __future__ import annotations
@@ -73,13 +73,12 @@ def _box(mask: np.ndarray, margin_mm: float, spacing) -> tuple[slice, ...]:
 
 
 def _bone(out: np.ndarray, c: int, spacing, anchor: np.ndarray | None = None, reach_mm: float = REGROW_MM,
-          in_front_of: float | None = None) -> np.ndarray:
+          strict: bool = False) -> np.ndarray:
     """Keep one piece of bone class ``c`` in ``out`` (in place); returns its mask (whole array).
 
     ``anchor``: the tissue the bone lies against (its cartilage; the femoral cartilage for the
     patella); of the bone's cores, the one with the most voxels within ``reach_mm`` of it is kept,
-    else the largest core.  ``in_front_of``: a column (W index); cores whose centroid is not
-    anterior to it are refused.
+    else the largest core (``strict``: else none).
     """
     whole = out == c
     if not whole.any():
@@ -96,15 +95,13 @@ def _bone(out: np.ndarray, c: int, spacing, anchor: np.ndarray | None = None, re
     else:
         score = np.bincount(core.ravel(), minlength=n + 1)[1:].astype(float)
         near_anchor = None if anchor is None else anchor[box][:, ::k, ::k]
+        near = np.zeros(n)
         if near_anchor is not None and near_anchor.any():
             around = _box(near_anchor, reach_mm, coarse)  # distances only near the anchor
             near = np.bincount(core[around][_edt(~near_anchor[around], coarse) <= reach_mm],
                                minlength=n + 1)[1:].astype(float)
-            if near.max() > 0:
-                score = near
-        if in_front_of is not None:
-            cols = np.array(ndi.center_of_mass(core > 0, core, np.arange(1, n + 1)))[:, 2] * k + box[2].start
-            score = np.where(cols < in_front_of, score, 0.0)
+        if near.max() > 0 or strict:
+            score = near
         chosen = np.concatenate([[False], _largest(score)])[core]
         kept = np.repeat(np.repeat(chosen, k, 1), k, 2)[:, :mask.shape[1], :mask.shape[2]] & mask
         if kept.any():
@@ -144,11 +141,9 @@ def clean_classes(classes: np.ndarray, spacing_zyx: tuple[float, float, float], 
     for cart in (FC, TC):
         _pieces(out, cart)
     fc = out == FC
-    femur = _bone(out, FEMUR, spacing, fc)
+    _bone(out, FEMUR, spacing, fc)
     _bone(out, TIBIA, spacing, out == TC)
-    # the patella: in front of the femur's middle, against the femoral cartilage
-    front = ndi.center_of_mass(femur)[2] if femur.any() else None
-    patella = _bone(out, PATELLA, spacing, fc, PATELLA_REACH_MM, front)
+    patella = _bone(out, PATELLA, spacing, fc, PATELLA_REACH_MM, strict=True)
     # the patellar cartilage: the pieces that rest on the kept patella (the largest if there is none)
     pc = out == PC
     if pc.any():
