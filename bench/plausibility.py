@@ -62,13 +62,14 @@ def main() -> None:
     keys += [("largest_component", b) for b in ("femur", "tibia", "patella")]
     keys += [("on_bone", c) for c in ("femoral_cartilage", "medial_tibial_cartilage", "lateral_tibial_cartilage", "patellar_cartilage")]
     keys += [("patella_anterior_mm", None)]
-    keys += [("postprocess_removed", c) for c in next(iter(rows.values()))["postprocess_removed"]]
+    removed = list(next(iter(rows.values()))["postprocess_removed"])
+    keys += [("postprocess_removed", c) for c in removed]
     for group, name in keys:
         v = np.array([r[group][name] if name else r[group] for r in rows.values()
                       if (name is None and group in r) or (name is not None and name in r[group])], float)
         table.add_row(f"{group} {name or ''}", f"{v.min():.3f} / {np.median(v):.3f} / {v.max():.3f}")
     console.print(table)
-    for c in next(iter(rows.values()))["postprocess_removed"]:
+    for c in removed:
         p = max(rows, key=lambda p: rows[p]["postprocess_removed"][c])
         console.print(f"post-processing removes at most {rows[p]['postprocess_removed'][c]:.2%} of {c} ({Path(p).name})",
                       highlight=False)

@@ -29,8 +29,6 @@ import SimpleITK as sitk
 from scipy import ndimage as ndi
 
 FEMUR, TIBIA, PATELLA, FC, TC, PC = 1, 2, 3, 4, 5, 6
-#: Bone class -> the cartilage class on it.
-CARTILAGE_OF = {FEMUR: FC, TIBIA: TC, PATELLA: PC}
 #: A bone is eroded by this much (mm) before its piece is chosen ...
 OPENING_MM = 2.0
 #: ... and the chosen core grown back within the class by this much (twice the erosion: a thin
@@ -53,8 +51,9 @@ def _edt(mask: np.ndarray, spacing) -> np.ndarray:
     return np.maximum(d, 0.0)
 
 
-def _components(mask: np.ndarray) -> tuple[np.ndarray, int]:
-    return ndi.label(mask)
+def _pick(labels: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """The voxels of the components ``keep`` (boolean over components 1..n) of a label array."""
+    return np.concatenate([[False], keep])[labels]
 
 
 def _largest(values: np.ndarray) -> np.ndarray:
@@ -88,10 +87,10 @@ def _bone(out: np.ndarray, c: int, spacing, anchor: np.ndarray | None = None, re
     # the cores on a grid of about half the opening in-plane (a DESS's 0.3 mm pixels: 4x fewer voxels)
     k = max(1, int(OPENING_MM / 2 / min(spacing[1:])))
     coarse = (spacing[0], spacing[1] * k, spacing[2] * k)
-    core, n = _components(_edt(mask[:, ::k, ::k], coarse) > OPENING_MM)
+    core, n = ndi.label(_edt(mask[:, ::k, ::k], coarse) > OPENING_MM)
     if n == 0:  # thinner than the opening everywhere: its largest piece as it is
-        comp, m = _components(mask)
-        kept = np.concatenate([[False], _largest(np.bincount(comp.ravel(), minlength=m + 1)[1:])])[comp]
+        comp, m = ndi.label(mask)
+        kept = _pick(comp, _largest(np.bincount(comp.ravel(), minlength=m + 1)[1:]))
     else:
         score = np.bincount(core.ravel(), minlength=n + 1)[1:].astype(float)
         near_anchor = None if anchor is None else anchor[box][:, ::k, ::k]
@@ -102,7 +101,7 @@ def _bone(out: np.ndarray, c: int, spacing, anchor: np.ndarray | None = None, re
                                minlength=n + 1)[1:].astype(float)
         if near.max() > 0 or strict:
             score = near
-        chosen = np.concatenate([[False], _largest(score)])[core]
+        chosen = _pick(core, _largest(score))
         kept = np.repeat(np.repeat(chosen, k, 1), k, 2)[:, :mask.shape[1], :mask.shape[2]] & mask
         if kept.any():
             grow = _box(kept, REGROW_MM, spacing)
@@ -115,10 +114,10 @@ def _bone(out: np.ndarray, c: int, spacing, anchor: np.ndarray | None = None, re
 def _pieces(out: np.ndarray, c: int, min_share: float = 0.05) -> None:
     """Keep every piece of class ``c`` at least ``min_share`` the size of its largest (in place)."""
     mask = out == c
-    comp, n = _components(mask)
+    comp, n = ndi.label(mask)
     if n > 1:
         sizes = np.bincount(comp.ravel())[1:]
-        out[mask & ~np.concatenate([[False], sizes >= min_share * sizes.max()])[comp]] = 0
+        out[mask & ~_pick(comp, sizes >= min_share * sizes.max())] = 0
 
 
 def _fill_holes(out: np.ndarray, c: int, max_voxels: float) -> None:
@@ -130,7 +129,7 @@ def _fill_holes(out: np.ndarray, c: int, max_voxels: float) -> None:
     holes, m = ndi.label(ndi.binary_fill_holes(solid) & ~solid)
     if m:
         small = np.bincount(holes.ravel())[1:] <= max_voxels
-        bone[np.concatenate([[False], small])[holes]] = c
+        bone[_pick(holes, small)] = c
 
 
 def clean_classes(classes: np.ndarray, spacing_zyx: tuple[float, float, float], max_hole_ml: float = 1.0) -> np.ndarray:
@@ -147,7 +146,7 @@ def clean_classes(classes: np.ndarray, spacing_zyx: tuple[float, float, float], 
     # the patellar cartilage: the pieces that rest on the kept patella (the largest if there is none)
     pc = out == PC
     if pc.any():
-        comp, n = _components(pc)
+        comp, n = ndi.label(pc)
         if patella.any():
             box = _box(patella, 2 * OPENING_MM, spacing)
             near = np.zeros_like(pc)
@@ -156,7 +155,7 @@ def clean_classes(classes: np.ndarray, spacing_zyx: tuple[float, float, float], 
         else:
             sizes = np.bincount(comp.ravel(), minlength=n + 1)[1:]
             on = _largest(sizes)
-        out[pc & ~np.concatenate([[False], on])[comp]] = 0
+        out[pc & ~_pick(comp, on)] = 0
     max_voxels = max_hole_ml * 1000.0 / float(np.prod(spacing))
     for bone in (FEMUR, TIBIA, PATELLA):
         _fill_holes(out, bone, max_voxels)
