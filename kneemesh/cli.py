@@ -15,6 +15,7 @@ from rich.table import Table
 
 from kneemesh.console import console, step_progress
 from kneemesh_core import KneeMeshError, __version__
+from kneemesh_core.fe.results import CONTACTS
 from kneemesh_core.job import JobRequest
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Knee MRI or label maps to FE-ready knee models.")
@@ -208,7 +209,7 @@ def _print_simulation(sim: dict) -> None:
             f"{sim['reached_flexion_deg']:.1f} of {sim['target_flexion_deg']:.0f} deg")
     if final.get("medial"):
         line += "; " + ", ".join(f"{k} {final[k]['force_n']:.0f} N on {final[k]['area_mm2']:.0f} mm^2, peak "
-                                 f"{final[k]['peak_pressure_mpa']:.1f} MPa" for k in ("medial", "lateral", "patellofemoral"))
+                                 f"{final[k]['peak_pressure_mpa']:.1f} MPa" for k in CONTACTS if k in final)
     out.print(line, highlight=False)
 
 

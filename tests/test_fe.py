@@ -214,3 +214,48 @@ def test_a_run_whose_femur_loses_the_tibia_is_not_completed():
     assert first_invalid(good) is None  # the seating step is judged at its end only
     reason = first_invalid(good + [inc(1.8, 72.0, 0.0, 0.88)])
     assert reason and "72.0 deg" in reason and "lost the tibia" in reason
+
+
+def _disk(radius: float, centre, spacing: float = 1.0):
+    """A flat triangulated disk at z = 0: points (P, 3) and triangles (T, 3)."""
+    from scipy.spatial import Delaunay
+
+    g = np.arange(-radius, radius + 1e-9, spacing)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    xy = xy[np.hypot(*xy.T) <= radius] + np.asarray(centre)[:2]
+    return np.column_stack([xy, np.zeros(len(xy))]), Delaunay(xy).simplices
+
+
+def test_a_meniscus_surrogate_rings_its_plate_below_the_femur_and_leaves_the_eminence_open():
+    from kneemesh_core.fe import menisci
+
+    plate = _disk(15.0, (0.0, 0.0))
+    # a femoral condyle: the lower half of a sphere of radius 25 mm resting 0.5 mm into the plate
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 120, endpoint=False), np.linspace(np.pi / 2 + 0.02, np.pi, 60))
+    r, z0 = 25.0, 24.5
+    sphere = np.column_stack([(r * np.sin(v) * np.cos(u)).ravel(), (r * np.sin(v) * np.sin(u)).ravel(), (z0 + r * np.cos(v)).ravel()])
+    import trimesh
+    femur = trimesh.convex.convex_hull(sphere)
+    other = np.array([40.0, 0.0, 0.0])  # the other plate, towards +x
+    nodes, hexes = menisci.wedge(plate, (np.asarray(femur.vertices), np.asarray(femur.faces)), np.array([0.0, 0.0, 1.0]), other)
+    assert len(hexes) > 100
+    top = np.unique(hexes[:, 4:])
+    p = nodes[top]
+    # under the femur less the clearance; never above the peripheral height; the lowest at the inner edge
+    below = np.sqrt(np.clip(r ** 2 - p[:, 0] ** 2 - p[:, 1] ** 2, 0, None))
+    femur_z = np.where(np.hypot(p[:, 0], p[:, 1]) < r, z0 - below, np.inf)
+    assert np.all(p[:, 2] <= femur_z - menisci.CLEARANCE_MM + 0.05)
+    assert p[:, 2].max() <= menisci.HEIGHT_MM + 1e-6 and p[:, 2].max() > 3.0
+    radius = np.hypot(p[:, 0], p[:, 1])
+    assert radius.min() == pytest.approx(15.0 - menisci.INNER_MM, abs=1.2)  # the disk's lattice rim: 14.1-15 mm
+    assert radius.max() == pytest.approx(15.0 + menisci.OUTER_MM, abs=1.2)
+    # open where the rim faces the other plate: no node within the open sector
+    angle = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
+    assert np.all(np.abs(angle) > menisci.OPEN_DEG - 8.0)
+    assert np.any(np.abs(angle) > 170)  # but round the far side
+    # every hexahedron the right way round (positive volume), its contact face (5-8) facing up
+    c = nodes[hexes]
+    jac = np.einsum("ij,ij->i", np.cross(c[:, 1] - c[:, 0], c[:, 3] - c[:, 0]), c[:, 4] - c[:, 0])
+    assert np.all(jac > 0)
+    n = np.cross(c[:, 5] - c[:, 4], c[:, 7] - c[:, 4])
+    assert np.all(n[:, 2] > 0)

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from kneemesh_core import __version__
-from kneemesh_core.fe.model import (PAIRS, QUADRICEPS_DRAW_MM, QUADRICEPS_ORIGIN_MM, STABILISER_N_MM,
-                                    STABILISER_NMM_RAD, Model, blankevoort)
+from kneemesh_core.fe.model import (IE_RESTRAINT_NMM_RAD, PAIRS, QUADRICEPS_SLACK_MM, STABILISER_N_MM, STABILISER_NMM_RAD, Model, blankevoort,
+                                    quadriceps_law)
 from kneemesh_core.io.files import atomic_write_text
 from kneemesh_core.tissues import BONES
 
@@ -76,7 +76,7 @@ def shared(m: Model) -> str:
     for body, nodes in m.body_nodes.items():
         w += _set("NSET", f"{body.upper()}_BODY", sorted(set(nodes)))
     w += _set("NSET", "REFS", [m.ref[b] for b in BONES])
-    w += _set("NSET", "LIGAMENT_ENDS", sorted({n for s in m.springs for n in s.nodes}))
+    w += _set("NSET", "LIGAMENT_ENDS", sorted({n for s in [*m.springs, m.quadriceps] for n in s.nodes}))
     for part in m.parts.values():
         name = part.name.upper()
         w += _set("ELSET", f"{name}_ART", part.articular) + _set("ELSET", f"{name}_DEEP", part.bone_side)
@@ -97,22 +97,29 @@ def shared(m: Model) -> str:
         w += [f"** {s.name}: k {s.stiffness_n:g} N/strain, slack length {s.slack_length_mm:.3f} mm, "
               f"initial length {s.length_mm:.3f} mm", f"*SPRING, ELSET=LIG_{s.name}, NONLINEAR", ""]
         w += [f"{f:.6e}, {d:.6e}" for f, d in blankevoort(s.stiffness_n, s.slack_length_mm, s.length_mm)]
-    fq, draw = m.load.quadriceps_n, QUADRICEPS_DRAW_MM
-    w += [f"** quadriceps: rises to {fq:g} N over its first {draw:g} mm of stretch, then nearly constant (+1 N/mm)",
-          "*SPRING, ELSET=QUADRICEPS, NONLINEAR", ""]
-    w += [f"{f:.6e}, {d:.6e}" for f, d in ((-1e-3 * fq, -draw), (0.0, 0.0), (fq, draw), (fq + q.length_mm, draw + q.length_mm))]
-    for name, (slave, master) in PAIRS.items():
+    w += [f"** quadriceps (patella to the femoral shaft): {m.load.quadriceps_n:g} N at its initial length, +1 N/mm as it "
+          f"lengthens, slack {QUADRICEPS_SLACK_MM:g} mm shorter", "*SPRING, ELSET=QUADRICEPS, NONLINEAR", ""]
+    w += [f"{f:.6e}, {d:.6e}" for f, d in quadriceps_law(m.load.quadriceps_n, q.length_mm)]
+    for name, (slave, master) in m.pairs.items():
         k = m.contact_k[name]
-        w += [f"** {name}: K = E / (h_{slave} + h_{master}) = 10 MPa / ({m.parts[slave].thickness_mm:.3f} + "
-              f"{m.parts[master].thickness_mm:.3f} mm) = {k:.4f} N/mm^3",
+        why = (f"K = E / (h_{slave} + h_{master}) = 10 MPa / ({m.parts[slave].thickness_mm:.3f} + "
+               f"{m.parts[master].thickness_mm:.3f} mm)" if name in PAIRS
+               else "meniscus surrogate (rigid, with the tibia): K of its compartment")
+        w += [f"** {name}: {why} = {k:.4f} N/mm^3",
               f"*SURFACE INTERACTION, NAME=CONTACT_{name.upper()}", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", f"{k:.6f}"]
     w += ["*AMPLITUDE, NAME=RAMP", "0.0, 0.0, 1.0, 1.0", "*AMPLITUDE, NAME=HOLD", "0.0, 1.0, 1.0, 1.0"]
     return "\n".join(w) + "\n"
 
 
-def _pair_lines(contact_keyword: str) -> list[str]:
+def joint_load(m: Model) -> list[str]:
+    """The joint load on the femur's reference node: ``joint_load_n`` down the tibial axis."""
+    force = -m.load.joint_load_n * m.tibial_axis
+    return [f"{m.ref['femur']}, {dof}, {f:.3f}" for dof, f in enumerate(force, 1) if abs(f) > 1e-3]
+
+
+def _pair_lines(m: Model, contact_keyword: str) -> list[str]:
     out = []
-    for name, (slave, master) in PAIRS.items():
+    for name, (slave, master) in m.pairs.items():
         out += [f"*CONTACT PAIR, INTERACTION=CONTACT_{name.upper()}, {contact_keyword}",
                 f"{slave.upper()}_ARTICULAR, {master.upper()}_ARTICULAR"]
     return out
@@ -129,45 +136,33 @@ def calculix(m: Model, flexion_deg: float | None = None, max_increment_deg: floa
     w += [f"{n}, " + ", ".join(f"{c:.6f}" for c in m.nodes[m.ref[b]]) for b, n in rot.items()]
     for b, n in rot.items():
         w.append(f"*RIGID BODY, NSET={b.upper()}_BODY, REF NODE={m.ref[b]}, ROT NODE={n}")
-    w += _pair_lines("TYPE=SURFACE TO SURFACE")
-    # weak springs to ground on the free degrees of freedom of the femur and the patella
+    w += _pair_lines(m, "TYPE=SURFACE TO SURFACE")
+    # weak springs to ground on the free degrees of freedom of the femur and the patella, and the
+    # femur's internal-external restraint
     stab = []
-    eid = m.quadriceps.element + 1
+    eid = m.next_element
     for b in ("femur", "patella"):
         for dof in (1, 2, 3):
             stab.append((eid, m.ref[b], dof, STABILISER_N_MM))
             eid += 1
         for dof in ((2, 3) if b == "femur" else (1, 2, 3)):
-            stab.append((eid, rot[b], dof, STABILISER_NMM_RAD))
+            stab.append((eid, rot[b], dof, IE_RESTRAINT_NMM_RAD if (b, dof) == ("femur", 3) else STABILISER_NMM_RAD))
             eid += 1
     for e, node, dof, k in stab:
         w += [f"*ELEMENT, TYPE=SPRING1, ELSET=STAB_{e}", f"{e}, {node}", f"*SPRING, ELSET=STAB_{e}", str(dof), f"{k:.6e}"]
     w += [f"*NSET, NSET=FEMUR_REF\n{m.ref['femur']}", f"*NSET, NSET=ROTS\n{', '.join(str(n) for n in rot.values())}"]
-    # the quadriceps' origin turns with the femur's flexion about the femur's reference node
-    quad = m.quadriceps.nodes[1]
-    centre = m.nodes[m.ref["femur"]]
-    r = QUADRICEPS_ORIGIN_MM + QUADRICEPS_DRAW_MM - centre[2]
-    angles = np.radians(np.linspace(0.0, flex, int(np.ceil(flex)) + 1))
-    times = angles / max(np.radians(flex), 1e-9)
-
-    def table(name: str, values) -> list[str]:
-        flat = [f"{t:.6f}, {v:.6f}" for t, v in zip(times, values)]
-        return [f"*AMPLITUDE, NAME={name}", *(", ".join(flat[k:k + 4]) for k in range(0, len(flat), 4))]
-
-    w += table("QUAD_Y", -r * np.sin(angles) - centre[1]) + table("QUAD_Z", centre[2] + r * np.cos(angles) - QUADRICEPS_ORIGIN_MM)
     outputs = ["*NODE PRINT, NSET=REFS", "U", "*NODE PRINT, NSET=ROTS", "U", "*NODE PRINT, NSET=TIBIA_BODY, TOTALS=ONLY", "RF",
                "*NODE PRINT, NSET=LIGAMENT_ENDS", "U"]
-    for name, (slave, master) in PAIRS.items():
+    for name, (slave, master) in m.pairs.items():
         outputs += [f"*CONTACT PRINT, SLAVE={slave.upper()}_ARTICULAR, MASTER={master.upper()}_ARTICULAR", "CF"]
     outputs += ["*CONTACT PRINT", "CSTR"]
     # step 1: the femur, seated at the depth that carries the joint load (model.seat), takes the whole
-    # load at once while the quadriceps is drawn up; flexion held at the image pose.  The tibia is
-    # fixed: its nodes are held (a rigid body held still, without ccx's three MPCs a node)
-    w += ["** step 1: settle under the joint load from the seated pose, the quadriceps drawn up",
+    # load and the quadriceps force at once; flexion held at the image pose.  The tibia is fixed: its
+    # nodes are held (a rigid body held still, without ccx's three MPCs a node)
+    w += ["** step 1: settle under the joint load and the quadriceps force from the seated pose",
           "*STEP, NLGEOM, INC=200", "*STATIC", "1.0, 1.0, 1e-6, 1.0", *CONTROLS, "*BOUNDARY",
           "TIBIA_BODY, 1, 3, 0.0", f"{m.ref['tibia']}, 1, 3, 0.0", f"{rot['femur']}, 1, 1, 0.0",
-          f"{quad}, 1, 2, 0.0", "*BOUNDARY, AMPLITUDE=RAMP", f"{quad}, 3, 3, {QUADRICEPS_DRAW_MM:.6f}",
-          "*CLOAD, AMPLITUDE=HOLD", f"{m.ref['femur']}, 3, {-m.load.joint_load_n:.3f}", *outputs, "*END STEP"]
+          "*CLOAD, AMPLITUDE=HOLD", *joint_load(m), *outputs, "*END STEP"]
     # step 2: flex the femur about X, the joint load held; whole increments (rounded up, so that
     # ccx adds no sliver of an increment at the end)
     n = int(np.ceil(flex / min(step, flex) - 1e-9))
@@ -176,7 +171,6 @@ def calculix(m: Model, flexion_deg: float | None = None, max_increment_deg: floa
           "*STEP, NLGEOM, INC=1000", "*STATIC", f"{dt:.10f}, 1.0, 1e-6, {dt:.10f}",
           *CONTROLS,
           "*BOUNDARY, AMPLITUDE=RAMP", f"{rot['femur']}, 1, 1, {np.radians(flex):.6f}",
-          "*BOUNDARY, AMPLITUDE=QUAD_Y", f"{quad}, 2, 2, 1.0", "*BOUNDARY, AMPLITUDE=QUAD_Z", f"{quad}, 3, 3, 1.0",
           *outputs, "*END STEP"]
     return "\n".join(w) + "\n"
 
@@ -186,14 +180,13 @@ def abaqus(m: Model) -> str:
     lc = m.load
     w = ["*HEADING", f"KneeMesh {__version__} knee, Abaqus/Explicit dialect: {lc.flexion_deg:g} deg flexion under "
          f"{lc.joint_load_n:g} N, cartilage {lc.cartilage}", f"*INCLUDE, INPUT={MODEL_FILE}"]
-    eid = m.quadriceps.element + 1
+    eid = m.next_element
     for b in BONES:
         tris = m.bone_triangles[b]
         w.append(f"*ELEMENT, TYPE=R3D3, ELSET={b.upper()}_SHELL")
         w += [f"{eid + i}, {t[0]}, {t[1]}, {t[2]}" for i, t in enumerate(tris)]
         eid += len(tris)
-    members = {"femur": ["FEMORAL_CARTILAGE"], "tibia": ["MEDIAL_TIBIAL_CARTILAGE", "LATERAL_TIBIAL_CARTILAGE"],
-               "patella": ["PATELLAR_CARTILAGE"]}
+    members = {b: [p.name.upper() for p in m.parts.values() if p.body == b] for b in BONES}
     for b in BONES:
         if lc.cartilage == "rigid":
             w += [f"*ELSET, ELSET={b.upper()}_RIGID", ", ".join([f"{b.upper()}_SHELL", *members[b]])]
@@ -209,11 +202,11 @@ def abaqus(m: Model) -> str:
               f"*ELEMENT, TYPE=ROTARYI, ELSET={b.upper()}_INERTIA", f"{eid + 1}, {m.ref[b]}",
               f"*ROTARY INERTIA, ELSET={b.upper()}_INERTIA", "1.0, 1.0, 1.0"]
         eid += 2
-    w += _pair_lines("MECHANICAL CONSTRAINT=PENALTY")
+    w += _pair_lines(m, "MECHANICAL CONSTRAINT=PENALTY")
     w += ["*AMPLITUDE, NAME=SMOOTH, DEFINITION=SMOOTH STEP", "0.0, 0.0, 1.0, 1.0",
           "*STEP, NAME=SEAT", "*DYNAMIC, EXPLICIT", ", 0.2", "*FIXED MASS SCALING, DT=1.0e-5, TYPE=BELOW MIN",
           "*BOUNDARY", f"{m.ref['tibia']}, 1, 6, 0.0", f"{m.ref['femur']}, 4, 4, 0.0",
-          "*CLOAD, AMPLITUDE=SMOOTH", f"{m.ref['femur']}, 3, {-lc.joint_load_n:.3f}",
+          "*CLOAD, AMPLITUDE=SMOOTH", *joint_load(m),
           "*OUTPUT, FIELD, NUMBER INTERVAL=10", "*NODE OUTPUT", "U, RF", "*CONTACT OUTPUT", "CSTRESS, CAREA",
           "*OUTPUT, HISTORY, TIME INTERVAL=0.005", "*NODE OUTPUT, NSET=REFS", "U, UR", "*ENERGY OUTPUT", "ALLKE, ALLIE",
           "*END STEP",
@@ -226,13 +219,16 @@ def meta(m: Model, flexion_deg: float) -> dict:
     """What reading the results needs: node and element ids, fibres, loads (``model.json``)."""
     femur_nodes = set(m.body_nodes["femur"])
     return {
-        "frame": m.frame, "side": m.side, "joint_load_n": m.load.joint_load_n, "quadriceps_n": m.load.quadriceps_n,
+        "frame": m.frame, "side": m.side, "joint_load_n": m.load.joint_load_n,
+        "joint_load_direction": (-m.tibial_axis).round(6).tolist(), "quadriceps_n": m.load.quadriceps_n,
         "flexion_deg": flexion_deg, "cartilage": m.load.cartilage, "contact_k": m.contact_k, "seating": m.seating,
-        "pairs": {name: f"{slave.upper()}_ARTICULAR" for name, (slave, _) in PAIRS.items()},
+        "pairs": {name: f"{slave.upper()}_ARTICULAR" for name, (slave, _) in m.pairs.items()},
         "slave_elements": {name: [int(m.parts[slave].elements[0]), int(m.parts[slave].elements[-1])]
-                           for name, (slave, _) in PAIRS.items()},
+                           for name, (slave, _) in m.pairs.items()},
         "ref": {b: m.ref[b] for b in BONES}, "rot": rot_nodes(m),
         "stabiliser_n_mm": STABILISER_N_MM,
+        "quadriceps": {"nodes": list(m.quadriceps.nodes), "start": [m.nodes[n].tolist() for n in m.quadriceps.nodes],
+                       "law": quadriceps_law(m.load.quadriceps_n, m.quadriceps.length_mm)},
         "fibres": [{"name": s.name, "bundle": s.bundle, "k": s.stiffness_n, "slack": s.slack_length_mm,
                     "nodes": list(s.nodes), "start": [m.nodes[s.nodes[0]].tolist(), m.nodes[s.nodes[1]].tolist()],
                     "femur_end": 0 if s.nodes[0] in femur_nodes else 1 if s.nodes[1] in femur_nodes else None}

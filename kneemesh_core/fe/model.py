@@ -23,15 +23,20 @@ k e^2 / (2 e_t) up to e_t = 0.06, k (e - e_t/2) beyond) and a slope of 1e-3 k/L0
 so that a slack fibre leaves no singular tangent.
 
 **Seating.** The image pose may start with the cartilages apart or overlapping (0.3-0.6 mm on
-real OA knees); :func:`seat` moves the femur along Z until its cartilage just touches the tibial
+real OA knees); :func:`seat` moves the femur down the tibial axis until its cartilage just touches the tibial
 cartilage, then on by the depth at which the contact law carries the joint load (the solver starts
 next to equilibrium, not from a touch that carries nothing), and the patella along its anterior
 axis until it just touches the femoral cartilage; it reports the overlaps it removed.
 
-**Loads.** The tibia fixed; a compressive joint load on the femur along -Z; a quadriceps force
-on the patella from a point up the femoral shaft that is drawn up first (the force rises to its
-value) and then turns with the femur's flexion; weak springs on the free degrees of freedom keep
-the solve regular before contact closes (their forces are part of the equilibrium check).
+**Loads.** The tibia fixed; a compressive joint load on the femur down the tibial axis; a
+quadriceps force on the patella from a point up the femoral shaft that belongs to the femur (the
+muscle's pull on its origin is the femur's: the quadriceps is internal to the thigh, and pulls the
+patella into the trochlea without pushing the femur off the tibia); weak springs on the free degrees
+of freedom keep the solve regular before contact closes (their forces are part of the equilibrium
+check).
+
+**Menisci.** Optional rigid surrogates on the plates' rims (:mod:`kneemesh_core.fe.menisci`), on by
+default: without them the lateral condyle leaves the convex lateral plate in flexion.
 """
 
 from __future__ import annotations
@@ -58,15 +63,21 @@ PAIRS = {"medial": ("medial_tibial_cartilage", "femoral_cartilage"),
          "patellofemoral": ("patellar_cartilage", "femoral_cartilage")}
 #: Stabilising springs on the free degrees of freedom: N/mm and N mm/rad.
 STABILISER_N_MM, STABILISER_NMM_RAD = 5.0, 2000.0
+#: Internal-external rotational restraint of the femur, N mm/rad (60 N m/rad, about 1 N m/deg, the
+#: order of a knee's measured torsional stiffness near neutral).  It stands for the capsule and the
+#: meniscal horns, which the model leaves out; without it the femur of the sample knee rotated 18-41
+#: deg externally by 27-45 deg of flexion and left the lateral plate (the paper's model controlled
+#: this degree of freedom with an applied torque).
+IE_RESTRAINT_NMM_RAD = 60000.0
 #: A seating deeper than this share of the tibiofemoral cartilage layers' combined thickness means
 #: the cartilages meet over too small an area to carry the joint load as cartilage: no cartilage
 #: is squeezed by three quarters.  The sample seats at 0.22 and OAI 9357383_00m at 0.29 (0.95 and
 #: 1.35 mm; the real maps 1.0-2.2 mm); a severity-3 phantom whose medial plate was meshed over 80 %
 #: of its label needed 4.1 mm, 1.28, and did not converge.
 MAX_PRELOAD_STRAIN = 0.75
-#: Where the quadriceps pulls from: this far up the femoral shaft (deck Z), mm; and how far it is
-#: drawn up to reach its force (the spring's force then stays nearly constant).
-QUADRICEPS_ORIGIN_MM, QUADRICEPS_DRAW_MM = 60.0, 5.0
+#: Where the quadriceps pulls from: this far up the femoral shaft (deck Z), mm; and how much shorter
+#: than its initial length it goes slack (its force then stays nearly constant as it lengthens).
+QUADRICEPS_ORIGIN_MM, QUADRICEPS_SLACK_MM = 200.0, 5.0
 
 
 @dataclass(frozen=True)
@@ -78,6 +89,7 @@ class LoadCase:
     flexion_deg: float = 90.0
     max_increment_deg: float = 3.0
     cartilage: str = "rigid"  # or "deformable" (Abaqus deck)
+    menisci: bool = True  # the meniscus surrogates (fe/menisci.py)
 
 
 @dataclass
@@ -113,14 +125,17 @@ class Model:
     springs: list[Spring] = field(default_factory=list)
     ref: dict[str, int] = field(default_factory=dict)  # body -> reference node
     body_nodes: dict[str, list[int]] = field(default_factory=dict)  # body -> nodes that must move with it
+    pairs: dict[str, tuple[str, str]] = field(default_factory=lambda: dict(PAIRS))  # name -> (slave, master)
     contact_k: dict[str, float] = field(default_factory=dict)  # pair -> N/mm^3
     quadriceps: Spring | None = None
     patella_anterior: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    tibial_axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # deck frame, proximal
     seating: dict = field(default_factory=dict)
     frame: dict = field(default_factory=dict)
     load: LoadCase = LoadCase()
     side: str = "right"
     next_id: int = 1
+    next_element: int = 1
 
     def add_nodes(self, points: np.ndarray) -> np.ndarray:
         ids = np.arange(self.next_id, self.next_id + len(points))
@@ -152,6 +167,12 @@ def blankevoort(k: float, slack: float, length: float, points: int = 48) -> list
     force = np.where(strain <= 0, 1e-3 * k * strain,
                      np.where(strain < et, k * strain ** 2 / (2 * et), k * (strain - et / 2)))
     return [(float(f), float(d)) for f, d in zip(force, elong)]
+
+
+def quadriceps_law(force_n: float, length_mm: float) -> list[tuple[float, float]]:
+    """(force N, elongation mm) of the quadriceps: ``force_n`` at its initial length, +1 N/mm as it
+    lengthens, falling to 0 over :data:`QUADRICEPS_SLACK_MM` of shortening."""
+    return [(-1e-3 * force_n, -length_mm), (0.0, -QUADRICEPS_SLACK_MM), (force_n, 0.0), (force_n + length_mm, length_mm)]
 
 
 def build(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
@@ -219,21 +240,54 @@ def build(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
         m.springs.append(Spring(fibre["name"], fibre["bundle"], element, (a, b), fibre["stiffness_n"],
                                 fibre["slack_length_mm"], length))
         element += 1
-    # the quadriceps: from the patella's proximal pole to a point up the femoral shaft, which the
-    # ccx deck moves with the femur's flexion (not part of the femur: it pulls the patella first)
+    # the quadriceps: from the patella's proximal pole to a point up the femoral shaft, on the femur
     patella = att["frames"]["patella"]
     pole = to_deck(np.asarray(patella["origin_mm"]) + 15.0 * np.asarray(patella["axes"]["proximal"]))
     shaft = np.array([0.0, 0.0, QUADRICEPS_ORIGIN_MM])
     a, b = (int(i) for i in m.add_nodes(np.stack([pole, shaft])))
     m.body_nodes["patella"].append(a)
+    m.body_nodes["femur"].append(b)
     m.quadriceps = Spring("QUADRICEPS", "QUAD", element, (a, b), 0.0, 0.0, float(np.linalg.norm(pole - shaft)))
+    m.next_element = element + 1
     m.patella_anterior = np.asarray(patella["axes"]["anterior"]) @ rot
+    m.tibial_axis = np.asarray(att["frames"]["tibia"]["axes"]["proximal"], float) @ rot
     m.seating = seat(m)
+    if load.menisci:
+        add_menisci(m)
     return m
 
 
+def _surface(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
+    """A cartilage's articular surface as points (P, 3) and triangles (T, 3), deck frame."""
+    quads, ids = _articular_faces(m, tissue)
+    local = np.searchsorted(ids, quads)
+    return np.stack([m.nodes[int(i)] for i in ids]), np.concatenate([local[:, [0, 1, 2]], local[:, [0, 2, 3]]])
+
+
+def add_menisci(m: Model) -> None:
+    """The meniscus surrogates (:mod:`kneemesh_core.fe.menisci`) of the seated model: a ring of
+    hexahedra on each tibial plate, rigid with the tibia, in contact with the femoral cartilage
+    under the contact law of its compartment."""
+    from kneemesh_core.fe.menisci import LAYER_MM, wedge
+
+    femoral = _surface(m, "femoral_cartilage")
+    plates = {side: _surface(m, f"{side}_tibial_cartilage") for side in ("medial", "lateral")}
+    for side, other in (("medial", "lateral"), ("lateral", "medial")):
+        nodes, hexes = wedge(plates[side], femoral, m.tibial_axis, plates[other][0].mean(0))
+        if not len(hexes):
+            continue
+        ids = m.add_nodes(nodes)
+        elements = np.arange(m.next_element, m.next_element + len(hexes))
+        m.next_element += len(hexes)
+        name = f"{side}_meniscus"
+        m.parts[name] = Part(name, "tibia", elements, ids[hexes], elements, elements, LAYER_MM)
+        m.body_nodes["tibia"].extend(ids.tolist())
+        m.pairs[name] = (name, "femoral_cartilage")
+        m.contact_k[name] = m.contact_k[side]
+
+
 def _articular_faces(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
-    """The articular (S2) faces of a cartilage as quads (Q, 4) of global node ids, and those ids."""
+    """The articular (S2) faces of a cartilage (or meniscus surrogate) as quads (Q, 4) of global node ids, and those ids."""
     part = m.parts[tissue]
     quads = part.connectivity[np.searchsorted(part.elements, part.articular)][:, [4, 7, 6, 5]]
     return quads, np.unique(quads)
@@ -287,12 +341,12 @@ def preload_depth(gaps_mm: list[np.ndarray], areas_mm2: list[np.ndarray], k_n_mm
 
 
 def seat(m: Model) -> dict:
-    """Seat the bones before any load: the femur moves along Z until its cartilage just touches the
+    """Seat the bones before any load: the femur moves down the tibial axis until its cartilage just touches the
     tibial cartilage (down across a gap, up out of an overlap) and then on by the depth at which the
     contact carries the joint load (:func:`preload_depth`), so that the solver starts next to
     equilibrium; then the patella along its anterior axis until it just touches the femoral
     cartilage.  The overlaps of the image pose are reported."""
-    z = np.array([0.0, 0.0, 1.0])
+    z = m.tibial_axis
     before = {pair: gaps(m, PAIRS[pair][0], PAIRS[pair][1], z) for pair in ("medial", "lateral")}
     g = np.concatenate(list(before.values()))
     touch = -float(np.nanmin(g)) if np.isfinite(g).any() else 0.0

@@ -102,7 +102,7 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
     out = []
     for t in sorted(dat["contact"]):
         row: dict = {"time": t, "flexion_deg": round(float(np.degrees(rots[t][meta["rot"]["femur"]][0])), 3) if t in rots else None}
-        femur_force = np.array([0.0, 0.0, -meta["joint_load_n"]])  # whole from the start of step 1
+        femur_force = meta["joint_load_n"] * np.asarray(meta["joint_load_direction"])  # whole from step 1 on
         pressures = dat["stress"].get(t, [])
         for name, slave in pairs.items():
             c = dat["contact"][t].get(slave, {"force": [0, 0, 0], "area": 0.0, "normal_force": 0.0})
@@ -125,6 +125,11 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
                 if f["femur_end"] is not None and force > 0:  # pulls the femur towards the other end
                     fe, other = (pa, pb) if f["femur_end"] == 0 else (pb, pa)
                     femur_force += force * (other - fe) / np.linalg.norm(other - fe)
+            q = meta["quadriceps"]  # pulls its origin on the femur towards the patella
+            pa, pb = (np.asarray(p) + u[n] for p, n in zip(q["start"], q["nodes"]))
+            stretch = float(np.linalg.norm(pa - pb) - np.linalg.norm(np.subtract(*q["start"])))
+            law = np.asarray(q["law"])
+            femur_force += float(np.interp(stretch, law[:, 1], law[:, 0])) * (pa - pb) / np.linalg.norm(pa - pb)
         if t in refs:
             femur_force -= meta["stabiliser_n_mm"] * refs[t][meta["ref"]["femur"]]
         row["ligaments_n"] = {b: round(v, 2) for b, v in sorted(bundles.items())}
@@ -138,13 +143,22 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
 MAX_BALANCE_ERROR = 0.05
 
 
+#: The contacts an increment reports (the meniscus surrogates' where the model has them).
+CONTACTS = ("medial", "lateral", "patellofemoral", "medial_meniscus", "lateral_meniscus")
+
+
+def tibiofemoral_n(row: dict) -> float:
+    """The tibiofemoral contact force of an increment (N): the plates and the meniscus surrogates."""
+    return sum(row[k]["force_n"] for k in CONTACTS if k in row and k != "patellofemoral")
+
+
 def first_invalid(increments: list[dict]) -> str | None:
     """Why the run stops being physics, or None: ccx can 'converge' on an increment whose femur has
     lost the tibia (no tibiofemoral contact under the joint load) and whose forces do not balance."""
     for r in increments:
         if r["time"] < 1.0:
             continue  # only the end of the seating step is trusted (ccx's cut-back increments are not)
-        tf = r["medial"]["force_n"] + r["lateral"]["force_n"]
+        tf = tibiofemoral_n(r)
         if r["balance_error"] > MAX_BALANCE_ERROR or tf <= 0:
             return (f"at {r['flexion_deg']:.1f} deg of flexion the femur's forces no longer balance the joint load "
                     f"(error {r['balance_error']:.0%}, tibiofemoral contact {tf:.0f} N): it lost the tibia")
@@ -158,7 +172,7 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
     increments = summarise(parse_dat(dat_path, stopped=not run.completed), meta) if dat_path.exists() else []
     invalid = first_invalid(increments)
     trusted = [r for r in increments if r["time"] < 1.0 or (r["balance_error"] <= MAX_BALANCE_ERROR
-                                                              and r["medial"]["force_n"] + r["lateral"]["force_n"] > 0)]
+                                                              and tibiofemoral_n(r) > 0)]
     if invalid:
         cut = next(i for i, r in enumerate(increments) if r["time"] >= 1.0 and r not in trusted)
         trusted = increments[:cut]
@@ -190,7 +204,9 @@ def plot(result: dict, path: Path) -> None:
     inc = [r for r in result["increments"] if r["flexion_deg"] is not None and r["time"] >= 1.0]  # the whole load on
     x = [r["flexion_deg"] for r in inc]
     fig, axs = plt.subplots(2, 2, figsize=(10, 7), dpi=80)
-    for name, style in (("medial", "-o"), ("lateral", "-s"), ("patellofemoral", "-^")):
+    for name, style in zip(CONTACTS, ("-o", "-s", "-^", ":o", ":s")):
+        if not inc or name not in inc[0]:
+            continue
         for ax, key, label in ((axs[0, 0], "force_n", "contact force, N"), (axs[0, 1], "area_mm2", "contact area, mm^2"),
                                (axs[1, 0], "peak_pressure_mpa", "peak (solid) and mean (dashed) pressure, MPa")):
             ax.plot(x, [r[name][key] for r in inc], style, ms=3, label=name)

@@ -224,7 +224,7 @@ def run_simulation(out_dir: str | os.PathLike, options: dict) -> dict:
     """CalculiX on the decks (smoke: to 15 deg; full: to 90 deg); ``fe/results.json`` and
     ``fe/contact.png``.  Never raises: a failed simulation is its entry, the meshes and decks stay."""
     from kneemesh_core.fe.model import LoadCase
-    from kneemesh_core.fe.results import CONTACT_FIGURE, RESULTS_FILE
+    from kneemesh_core.fe.results import CONTACT_FIGURE, CONTACTS, RESULTS_FILE
     from kneemesh_core.fe.run import FE_DIR, SMOKE_DIR, simulate
 
     opts = JobOptions.from_dict(options)
@@ -239,7 +239,7 @@ def run_simulation(out_dir: str | os.PathLike, options: dict) -> dict:
         return {"status": status, "reasons": reasons, "kind": opts.simulate, "completed": r["completed"],
                 "reason": r["reason"], "solver": r["solver"], "solver_seconds": r["seconds"],
                 "reached_flexion_deg": r["reached_flexion_deg"], "target_flexion_deg": r["target_flexion_deg"],
-                "final": {k: last.get(k) for k in ("medial", "lateral", "patellofemoral", "balance_error")},
+                "final": {k: v for k, v in last.items() if k in ("balance_error", *CONTACTS)},
                 "files": [f"{FE_DIR}/{SMOKE_DIR + '/' if opts.simulate == 'smoke' else ''}{f}" for f in (RESULTS_FILE, CONTACT_FIGURE)]}
 
     return _guarded(work)

@@ -1,0 +1,152 @@
+"""Meniscus surrogates: a rigid wedge on the periphery of each tibial plate, part of the tibia.
+
+Why.  Without menisci the femur of a quasi-static flexion slides off the convex lateral plate:
+on the sample knee the femur moved 9 mm posteriorly and rotated 18 deg by 27 deg of flexion,
+the lateral condyle left the plate's posterior rim and the run stopped at 30 deg, whatever the
+ligament and stabiliser settings (``bench/RESULTS.md``, session 11).  In a knee the menisci cup
+the condyles; the paper's model left them out and calibrated its ligaments to make up for them.
+
+What.  Each meniscus is a C-shaped ring of hexahedra (one layer, rigid with the tibia) that
+follows the plate's outline from :data:`INNER_MM` inside its rim to :data:`OUTER_MM` beyond
+it, open where the rim faces the other plate (the horns' insertions on the intercondylar
+eminence).  Its upper surface rises from the plate at the inner edge to at most :data:`HEIGHT_MM`
+above it at the rim, and nowhere comes closer than :data:`CLEARANCE_MM` to the seated femoral
+cartilage: it carries nothing in the image pose and takes load only when a condyle rolls or
+slides onto it, as a meniscus restrains the condyle it holds.  The surface is shaped to the
+knee's own condyles, so it fits knees of every size without a template.
+
+The ring's grid is built here on arrays (no meshing library makes a swept ring of a height
+field); the heights come from Embree ray casts (trimesh).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
+
+#: How far the wedge reaches over the plate from its rim, and beyond the rim, mm (a meniscus
+#: covers the outer third or so of a plate; its body is 8-12 mm wide).
+INNER_MM, OUTER_MM = 6.0, 3.0
+#: Peripheral height above the plate at most, mm (meniscal rims stand 5-7 mm).
+HEIGHT_MM = 6.0
+#: Gap left below the seated femoral cartilage, mm.
+CLEARANCE_MM = 0.3
+#: Depth of the hexahedral layer, mm (the ring is rigid: only its upper surface matters).
+LAYER_MM = 1.0
+#: No wedge where the rim's outward direction is within this angle of the other plate's centre.
+OPEN_DEG = 50.0
+#: Spacing of the ring's nodes along the rim and across it, mm.
+SPACING_MM = 1.5
+#: Smoothing of the rim's outward directions along the rim, mm (Gaussian sigma).
+NORMAL_SMOOTHING_MM = 4.0
+#: Outline raster: pixel, and the closing radius that bridges the gaps between projected nodes, mm.
+PIXEL_MM, CLOSING_MM = 0.4, 1.6
+
+
+def _plane(axis: np.ndarray) -> np.ndarray:
+    """(2, 3) orthonormal basis of the plane normal to unit ``axis``."""
+    e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(axis, e1)])
+
+
+def outline(uv: np.ndarray, spacing_mm: float = SPACING_MM) -> np.ndarray:
+    """The outline of a plate's projected nodes ``uv`` (P, 2), mm: a closed polygon (N, 2) running
+    counter-clockwise, smoothed and resampled every ``spacing_mm`` along its length."""
+    from skimage.measure import find_contours
+
+    lo = uv.min(0) - 2 * CLOSING_MM - 1.0
+    ij = np.round((uv - lo) / PIXEL_MM).astype(int)
+    mask = np.zeros(ij.max(0) + int(2 * CLOSING_MM / PIXEL_MM) + 3, bool)
+    mask[ij[:, 0], ij[:, 1]] = True
+    r = int(np.ceil(CLOSING_MM / PIXEL_MM))
+    disk = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r
+    mask = ndi.binary_fill_holes(ndi.binary_erosion(ndi.binary_dilation(mask, disk), disk, border_value=0))
+    labels, n = ndi.label(mask)
+    if n > 1:
+        mask = labels == 1 + int(np.argmax(ndi.sum(mask, labels, range(1, n + 1))))
+    contour = max(find_contours(np.pad(mask, 1).astype(float), 0.5), key=len)[:-1] - 1.0
+    pts = contour * PIXEL_MM + lo
+    pts = ndi.gaussian_filter1d(pts, sigma=1.0 / PIXEL_MM, axis=0, mode="wrap")  # 1 mm: the pixel steps go
+    closed = np.vstack([pts, pts[:1]])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
+    s = np.arange(0.0, arc[-1], arc[-1] / max(8, round(arc[-1] / spacing_mm)))
+    out = np.stack([np.interp(s, arc, closed[:, k]) for k in (0, 1)], axis=1)
+    area = 0.5 * np.sum(out[:, 0] * np.roll(out[:, 1], -1) - np.roll(out[:, 0], -1) * out[:, 1])
+    return out if area > 0 else out[::-1]
+
+
+def _heights(origins: np.ndarray, direction: np.ndarray, points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Distance (mm) along unit ``direction`` from each origin (K, 3) to the surface, NaN on a miss."""
+    import trimesh
+
+    surface = trimesh.Trimesh(points, triangles, process=False)
+    loc, index, _ = surface.ray.intersects_location(origins, np.tile(direction, (len(origins), 1)), multiple_hits=False)
+    out = np.full(len(origins), np.nan)
+    out[index] = (loc - origins[index]) @ direction
+    return out
+
+
+def wedge(plate: tuple[np.ndarray, np.ndarray], femoral: tuple[np.ndarray, np.ndarray], axis: np.ndarray,
+          other_centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A meniscus surrogate on one tibial plate.
+
+    ``plate`` and ``femoral``: articular surfaces as (points (P, 3) mm, triangles (T, 3)), the femur
+    seated; ``axis``: the tibia's proximal axis (3,); ``other_centre``: the other plate's centre
+    (3,) mm, which the ring leaves open.  Returns nodes (N, 3) mm and C3D8 hexahedra (E, 8) indexing
+    them, nodes 1-4 below and 5-8 on the upper (contact) surface; empty arrays if no rim is left.
+    """
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    basis = _plane(axis)
+    pts, tris = plate
+    uv = pts @ basis.T
+    ring = outline(uv)
+    tangent = np.roll(ring, -1, axis=0) - np.roll(ring, 1, axis=0)
+    normal = np.stack([tangent[:, 1], -tangent[:, 0]], axis=1)  # outward on a counter-clockwise outline
+    normal = ndi.gaussian_filter1d(normal / np.linalg.norm(normal, axis=1, keepdims=True), NORMAL_SMOOTHING_MM / SPACING_MM,
+                                   axis=0, mode="wrap")  # smoother than the outline, so that stations cross less
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    toward = (other_centre - pts.mean(0)) @ basis.T
+    keep = normal @ (toward / np.linalg.norm(toward)) < np.cos(np.radians(OPEN_DEG))
+    if keep.all() or not keep.any():
+        start = 0
+        runs = [np.arange(len(ring))] if keep.all() else []
+    else:  # the longest run of kept rim points, read round the closed outline
+        start = int(np.argmin(keep))
+        rolled = np.roll(keep, -start)
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], rolled.astype(int), [0]])))
+        runs = [np.arange(a, b) for a, b in zip(edges[::2], edges[1::2])]
+    if not runs:
+        return np.zeros((0, 3)), np.zeros((0, 8), int)
+    run = (max(runs, key=len) + start) % len(ring)
+    if len(run) < 4:
+        return np.zeros((0, 3)), np.zeros((0, 8), int)
+    stations = np.linspace(-INNER_MM, OUTER_MM, int(round((INNER_MM + OUTER_MM) / SPACING_MM)) + 1)
+    q = ring[run][:, None, :] + stations[None, :, None] * normal[run][:, None, :]  # (I, J, 2)
+    flat = q.reshape(-1, 2) @ basis  # on the plane through the origin, (I*J, 3)
+    along = pts @ axis
+    top_of_box = along.max() + 50.0
+    base = top_of_box - _heights(flat + top_of_box * axis, -axis, pts, tris)
+    miss = ~np.isfinite(base)
+    if miss.any():  # beyond the plate: the height of its nearest node
+        base[miss] = along[cKDTree(uv).query(q.reshape(-1, 2)[miss])[1]]
+    below = 20.0  # rays start this far below the plate, so a femur that overlaps it is found too
+    gap = _heights(flat + (base - below)[:, None] * axis, axis, *femoral) - below
+    rise = HEIGHT_MM * np.clip((stations + INNER_MM) / INNER_MM, 0.0, 1.0)
+    top = base + np.minimum(np.nan_to_num(gap, nan=np.inf) - CLEARANCE_MM, np.tile(rise, len(run)))
+    upper = flat + top[:, None] * axis
+    nodes = np.concatenate([upper - LAYER_MM * axis, upper])  # the layer below, then the surface
+    ni, nj = q.shape[:2]
+    idx = np.arange(ni * nj).reshape(ni, nj)
+    quad = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], axis=-1).reshape(-1, 4)
+    corners = q.reshape(-1, 2)[quad]  # (E, 4, 2)
+    area = 0.5 * np.sum(corners[:, :, 0] * np.roll(corners[:, :, 1], -1, axis=1)
+                        - np.roll(corners[:, :, 0], -1, axis=1) * corners[:, :, 1], axis=1)
+    a, b = np.roll(corners, -1, axis=1) - corners, np.roll(corners, -2, axis=1) - np.roll(corners, -1, axis=1)
+    convex = np.all((a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]) * np.sign(np.median(area)) > 0, axis=1)
+    quad = quad[convex]  # where a concave rim makes the stations cross, the ring leaves a gap
+    if np.median(area) < 0:  # nodes 1-4 counter-clockwise seen from above
+        quad = quad[:, ::-1]
+    used, hexes = np.unique(np.concatenate([quad, quad + ni * nj], axis=1), return_inverse=True)
+    return nodes[used], hexes.reshape(-1, 8)
