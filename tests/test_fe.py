@@ -237,7 +237,7 @@ def test_a_meniscus_surrogate_rings_its_plate_below_the_femur_and_leaves_the_emi
     import trimesh
     femur = trimesh.convex.convex_hull(sphere)
     other = np.array([40.0, 0.0, 0.0])  # the other plate, towards +x
-    nodes, hexes = menisci.wedge(plate, (np.asarray(femur.vertices), np.asarray(femur.faces)), np.array([0.0, 0.0, 1.0]), other)
+    nodes, hexes = menisci.wedge(plate, [(np.asarray(femur.vertices), np.asarray(femur.faces))], np.array([0.0, 0.0, 1.0]), other)
     assert len(hexes) > 100
     top = np.unique(hexes[:, 4:])
     p = nodes[top]

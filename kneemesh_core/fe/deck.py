@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from kneemesh_core import __version__
-from kneemesh_core.fe.model import (IE_RESTRAINT_NMM_RAD, PAIRS, QUADRICEPS_SLACK_MM, STABILISER_N_MM, STABILISER_NMM_RAD, Model, blankevoort,
+from kneemesh_core.fe.model import (AP_RESTRAINT_N_MM, IE_RESTRAINT_NMM_RAD, PAIRS, PATELLA_ROTATION_NMM_RAD,
+                                    QUADRICEPS_SLACK_MM, STABILISER_N_MM, STABILISER_NMM_RAD, Model, blankevoort,
                                     quadriceps_law)
 from kneemesh_core.io.files import atomic_write_text
 from kneemesh_core.tissues import BONES
@@ -39,6 +40,12 @@ CONTROLS = ("*CONTROLS, PARAMETERS=FIELD", "0.005, 0.01, 100.0, 100.0")
 def rot_nodes(m: Model) -> dict[str, int]:
     """The ROT node of each moving rigid body in the ccx deck (the tibia is held, not a rigid body)."""
     return {b: m.next_id + i for i, b in enumerate(("femur", "patella"))}
+
+
+def femur_springs() -> tuple[float, float, float]:
+    """The femur's translational springs to the ground along deck X, Y, Z, N/mm: weak, but for the
+    anterior-posterior restraint."""
+    return STABILISER_N_MM, AP_RESTRAINT_N_MM, STABILISER_N_MM
 
 
 def _ids(ids) -> list[str]:
@@ -76,7 +83,7 @@ def shared(m: Model) -> str:
     for body, nodes in m.body_nodes.items():
         w += _set("NSET", f"{body.upper()}_BODY", sorted(set(nodes)))
     w += _set("NSET", "REFS", [m.ref[b] for b in BONES])
-    w += _set("NSET", "LIGAMENT_ENDS", sorted({n for s in [*m.springs, m.quadriceps] for n in s.nodes}))
+    w += _set("NSET", "LIGAMENT_ENDS", sorted({n for s in [*m.springs, m.quadriceps] for n in s.nodes} | {m.patella_anchor}))
     for part in m.parts.values():
         name = part.name.upper()
         w += _set("ELSET", f"{name}_ART", part.articular) + _set("ELSET", f"{name}_DEEP", part.bone_side)
@@ -137,19 +144,25 @@ def calculix(m: Model, flexion_deg: float | None = None, max_increment_deg: floa
     for b, n in rot.items():
         w.append(f"*RIGID BODY, NSET={b.upper()}_BODY, REF NODE={m.ref[b]}, ROT NODE={n}")
     w += _pair_lines(m, "TYPE=SURFACE TO SURFACE")
-    # weak springs to ground on the free degrees of freedom of the femur and the patella, and the
-    # femur's internal-external restraint
-    stab = []
+    # weak springs on the free degrees of freedom: the femur's to the ground (with its internal-external
+    # restraint), the patella's to the femur (grounded, they would pull back a patella that follows the
+    # femur 30-50 mm through flexion: 150-250 N on the sample at 50 deg), its tilt and spin held as by the
+    # retinacula
     eid = m.next_element
-    for b in ("femur", "patella"):
-        for dof in (1, 2, 3):
-            stab.append((eid, m.ref[b], dof, STABILISER_N_MM))
+    for dof, k in enumerate(femur_springs(), 1):
+        w += [f"*ELEMENT, TYPE=SPRING1, ELSET=STAB_{eid}", f"{eid}, {m.ref['femur']}", f"*SPRING, ELSET=STAB_{eid}",
+              str(dof), f"{k:.6e}"]
+        eid += 1
+    for dof in (2, 3):
+        k = IE_RESTRAINT_NMM_RAD if dof == 3 else STABILISER_NMM_RAD
+        w += [f"*ELEMENT, TYPE=SPRING1, ELSET=STAB_{eid}", f"{eid}, {rot['femur']}", f"*SPRING, ELSET=STAB_{eid}", str(dof), f"{k:.6e}"]
+        eid += 1
+    for a, b, ks in ((m.ref["patella"], m.patella_anchor, (STABILISER_N_MM,) * 3),
+                     (rot["patella"], rot["femur"], (STABILISER_NMM_RAD, PATELLA_ROTATION_NMM_RAD, PATELLA_ROTATION_NMM_RAD))):
+        for dof, k in enumerate(ks, 1):
+            w += [f"*ELEMENT, TYPE=SPRING2, ELSET=STAB_{eid}", f"{eid}, {a}, {b}", f"*SPRING, ELSET=STAB_{eid}",
+                  f"{dof}, {dof}", f"{k:.6e}"]
             eid += 1
-        for dof in ((2, 3) if b == "femur" else (1, 2, 3)):
-            stab.append((eid, rot[b], dof, IE_RESTRAINT_NMM_RAD if (b, dof) == ("femur", 3) else STABILISER_NMM_RAD))
-            eid += 1
-    for e, node, dof, k in stab:
-        w += [f"*ELEMENT, TYPE=SPRING1, ELSET=STAB_{e}", f"{e}, {node}", f"*SPRING, ELSET=STAB_{e}", str(dof), f"{k:.6e}"]
     w += [f"*NSET, NSET=FEMUR_REF\n{m.ref['femur']}", f"*NSET, NSET=ROTS\n{', '.join(str(n) for n in rot.values())}"]
     outputs = ["*NODE PRINT, NSET=REFS", "U", "*NODE PRINT, NSET=ROTS", "U", "*NODE PRINT, NSET=TIBIA_BODY, TOTALS=ONLY", "RF",
                "*NODE PRINT, NSET=LIGAMENT_ENDS", "U"]
@@ -226,7 +239,7 @@ def meta(m: Model, flexion_deg: float) -> dict:
         "slave_elements": {name: [int(m.parts[slave].elements[0]), int(m.parts[slave].elements[-1])]
                            for name, (slave, _) in m.pairs.items()},
         "ref": {b: m.ref[b] for b in BONES}, "rot": rot_nodes(m),
-        "stabiliser_n_mm": STABILISER_N_MM,
+        "stabiliser_n_mm": STABILISER_N_MM, "femur_springs_n_mm": list(femur_springs()), "patella_anchor": m.patella_anchor,
         "quadriceps": {"nodes": list(m.quadriceps.nodes), "start": [m.nodes[n].tolist() for n in m.quadriceps.nodes],
                        "law": quadriceps_law(m.load.quadriceps_n, m.quadriceps.length_mm)},
         "fibres": [{"name": s.name, "bundle": s.bundle, "k": s.stiffness_n, "slack": s.slack_length_mm,

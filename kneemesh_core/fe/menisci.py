@@ -11,8 +11,11 @@ follows the plate's outline from :data:`INNER_MM` inside its rim to :data:`OUTER
 it, open where the rim faces the other plate (the horns' insertions on the intercondylar
 eminence).  Its upper surface rises from the plate at the inner edge to at most :data:`HEIGHT_MM`
 above it at the rim, and nowhere comes closer than :data:`CLEARANCE_MM` to the seated femoral
-cartilage: it carries nothing in the image pose and takes load only when a condyle rolls or
-slides onto it, as a meniscus restrains the condyle it holds.  The surface is shaped to the
+cartilage in any pose of the flexion path (the femur turned about its flexion axis, every
+:data:`POSE_STEP_DEG`): it carries nothing while the condyles follow that path and takes load only
+when a condyle slides or rolls off it, as a meniscus restrains the condyle it holds.  (Shaped to the
+image pose alone, the ring lifted the flexed lateral condyle off its plate: the condyles' profile
+under the ring changes with flexion.)  The surface is shaped to the
 knee's own condyles, so it fits knees of every size without a template.
 
 The ring's grid is built here on arrays (no meshing library makes a swept ring of a height
@@ -30,8 +33,8 @@ from scipy.spatial import cKDTree
 INNER_MM, OUTER_MM = 6.0, 3.0
 #: Peripheral height above the plate at most, mm (meniscal rims stand 5-7 mm).
 HEIGHT_MM = 6.0
-#: Gap left below the seated femoral cartilage, mm.
-CLEARANCE_MM = 0.3
+#: Gap left below the seated femoral cartilage, mm, and the flexion path's step, deg.
+CLEARANCE_MM, POSE_STEP_DEG = 0.3, 10.0
 #: Depth of the hexahedral layer, mm (the ring is rigid: only its upper surface matters).
 LAYER_MM = 1.0
 #: No wedge where the rim's outward direction is within this angle of the other plate's centre.
@@ -88,12 +91,12 @@ def _heights(origins: np.ndarray, direction: np.ndarray, points: np.ndarray, tri
     return out
 
 
-def wedge(plate: tuple[np.ndarray, np.ndarray], femoral: tuple[np.ndarray, np.ndarray], axis: np.ndarray,
+def wedge(plate: tuple[np.ndarray, np.ndarray], femoral: list[tuple[np.ndarray, np.ndarray]], axis: np.ndarray,
           other_centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A meniscus surrogate on one tibial plate.
 
-    ``plate`` and ``femoral``: articular surfaces as (points (P, 3) mm, triangles (T, 3)), the femur
-    seated; ``axis``: the tibia's proximal axis (3,); ``other_centre``: the other plate's centre
+    ``plate``: the plate's articular surface as (points (P, 3) mm, triangles (T, 3)); ``femoral``:
+    the femoral cartilage's in each pose the ring must clear (the seated femur first); ``axis``: the tibia's proximal axis (3,); ``other_centre``: the other plate's centre
     (3,) mm, which the ring leaves open.  Returns nodes (N, 3) mm and C3D8 hexahedra (E, 8) indexing
     them, nodes 1-4 below and 5-8 on the upper (contact) surface; empty arrays if no rim is left.
     """
@@ -132,7 +135,8 @@ def wedge(plate: tuple[np.ndarray, np.ndarray], femoral: tuple[np.ndarray, np.nd
     if miss.any():  # beyond the plate: the height of its nearest node
         base[miss] = along[cKDTree(uv).query(q.reshape(-1, 2)[miss])[1]]
     below = 20.0  # rays start this far below the plate, so a femur that overlaps it is found too
-    gap = _heights(flat + (base - below)[:, None] * axis, axis, *femoral) - below
+    gaps = np.stack([_heights(flat + (base - below)[:, None] * axis, axis, *f) for f in femoral])
+    gap = np.where(np.isfinite(gaps).any(0), np.min(np.nan_to_num(gaps, nan=np.inf), axis=0), np.nan) - below
     rise = HEIGHT_MM * np.clip((stations + INNER_MM) / INNER_MM, 0.0, 1.0)
     top = base + np.minimum(np.nan_to_num(gap, nan=np.inf) - CLEARANCE_MM, np.tile(rise, len(run)))
     upper = flat + top[:, None] * axis

@@ -32,8 +32,8 @@ axis until it just touches the femoral cartilage; it reports the overlaps it rem
 quadriceps force on the patella from a point up the femoral shaft that belongs to the femur (the
 muscle's pull on its origin is the femur's: the quadriceps is internal to the thigh, and pulls the
 patella into the trochlea without pushing the femur off the tibia); weak springs on the free degrees
-of freedom keep the solve regular before contact closes (their forces are part of the equilibrium
-check).
+of freedom keep the solve regular before contact closes: the femur's to the ground, the patella's to
+the femur, which it follows through flexion (their forces are part of the equilibrium check).
 
 **Menisci.** Optional rigid surrogates on the plates' rims (:mod:`kneemesh_core.fe.menisci`), on by
 default: without them the lateral condyle leaves the convex lateral plate in flexion.
@@ -69,6 +69,13 @@ STABILISER_N_MM, STABILISER_NMM_RAD = 5.0, 2000.0
 #: deg externally by 27-45 deg of flexion and left the lateral plate (the paper's model controlled
 #: this degree of freedom with an applied torque).
 IE_RESTRAINT_NMM_RAD = 60000.0
+#: Anterior-posterior restraint of the femur (deck Y), N/mm, for the secondary AP restraints the
+#: model leaves out (meniscal horns, capsule), the order of a knee's anterior drawer stiffness.
+AP_RESTRAINT_N_MM = 40.0
+#: The patella's tilt and spin restraint relative to the femur (deck Y and Z rotations), N mm/rad:
+#: the retinacula.  With only the weak stabiliser the sample's patella spun 34 deg by 21 deg of flexion
+#: and left the trochlea.
+PATELLA_ROTATION_NMM_RAD = 30000.0
 #: A seating deeper than this share of the tibiofemoral cartilage layers' combined thickness means
 #: the cartilages meet over too small an area to carry the joint load as cartilage: no cartilage
 #: is squeezed by three quarters.  The sample seats at 0.22 and OAI 9357383_00m at 0.29 (0.95 and
@@ -128,6 +135,7 @@ class Model:
     pairs: dict[str, tuple[str, str]] = field(default_factory=lambda: dict(PAIRS))  # name -> (slave, master)
     contact_k: dict[str, float] = field(default_factory=dict)  # pair -> N/mm^3
     quadriceps: Spring | None = None
+    patella_anchor: int = 0  # a femur node where the patella's reference node starts (its stabilisers' other end)
     patella_anterior: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tibial_axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # deck frame, proximal
     seating: dict = field(default_factory=dict)
@@ -228,6 +236,8 @@ def build(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
     # reference nodes: femur and patella at their frames' origins, tibia at the tibial frame's
     for body in BONES:
         m.ref[body] = int(m.add_nodes(to_deck(np.asarray(att["frames"][body]["origin_mm"])[None]))[0])
+    m.patella_anchor = int(m.add_nodes(m.nodes[m.ref["patella"]][None])[0])
+    m.body_nodes["femur"].append(m.patella_anchor)
     # ligaments: one node per fibre end, moving with the body of its bone
     for fibre in att["fibres"]:
         ends = fibre["ends"]
@@ -253,7 +263,7 @@ def build(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
     m.tibial_axis = np.asarray(att["frames"]["tibia"]["axes"]["proximal"], float) @ rot
     m.seating = seat(m)
     if load.menisci:
-        add_menisci(m)
+        add_menisci(m, load.flexion_deg)
     return m
 
 
@@ -264,13 +274,19 @@ def _surface(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([m.nodes[int(i)] for i in ids]), np.concatenate([local[:, [0, 1, 2]], local[:, [0, 2, 3]]])
 
 
-def add_menisci(m: Model) -> None:
+def add_menisci(m: Model, flexion_deg: float) -> None:
     """The meniscus surrogates (:mod:`kneemesh_core.fe.menisci`) of the seated model: a ring of
     hexahedra on each tibial plate, rigid with the tibia, in contact with the femoral cartilage
-    under the contact law of its compartment."""
-    from kneemesh_core.fe.menisci import LAYER_MM, wedge
+    under the contact law of its compartment, clear of the femoral cartilage as it turns about the
+    flexion axis (deck X through the femur's reference node) from 0 to ``flexion_deg``."""
+    from scipy.spatial.transform import Rotation
 
-    femoral = _surface(m, "femoral_cartilage")
+    from kneemesh_core.fe.menisci import LAYER_MM, POSE_STEP_DEG, wedge
+
+    points, triangles = _surface(m, "femoral_cartilage")
+    centre = m.nodes[m.ref["femur"]]
+    femoral = [((points - centre) @ Rotation.from_rotvec([np.radians(a), 0.0, 0.0]).as_matrix().T + centre, triangles)
+               for a in np.arange(0.0, flexion_deg + 1e-9, POSE_STEP_DEG)]
     plates = {side: _surface(m, f"{side}_tibial_cartilage") for side in ("medial", "lateral")}
     for side, other in (("medial", "lateral"), ("lateral", "medial")):
         nodes, hexes = wedge(plates[side], femoral, m.tibial_axis, plates[other][0].mean(0))

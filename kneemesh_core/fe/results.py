@@ -131,7 +131,9 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
             law = np.asarray(q["law"])
             femur_force += float(np.interp(stretch, law[:, 1], law[:, 0])) * (pa - pb) / np.linalg.norm(pa - pb)
         if t in refs:
-            femur_force -= meta["stabiliser_n_mm"] * refs[t][meta["ref"]["femur"]]
+            femur_force -= np.asarray(meta["femur_springs_n_mm"]) * refs[t][meta["ref"]["femur"]]
+            if t in ends:  # the patella's stabilisers pull its anchor on the femur
+                femur_force += meta["stabiliser_n_mm"] * (refs[t][meta["ref"]["patella"]] - ends[t][meta["patella_anchor"]])
         row["ligaments_n"] = {b: round(v, 2) for b, v in sorted(bundles.items())}
         row["femur_force_balance_n"] = np.round(femur_force, 3).tolist()
         row["balance_error"] = round(float(np.linalg.norm(femur_force) / meta["joint_load_n"]), 4)
