@@ -182,6 +182,9 @@ def test_decks_are_clean_in_both_dialects(knee):
             assert a in surfaces and b in surfaces
         for name in re.findall(r"(?:NSET|ELSET)=(\w+)", text):
             assert name in defined, name
+    # the meniscus rings: in the tibia's body, in contact with the femoral cartilage in both dialects
+    for side in ("MEDIAL", "LATERAL"):
+        assert f"{side}_MENISCUS_ARTICULAR, FEMORAL_CARTILAGE_ARTICULAR" in ccx and f"{side}_MENISCUS_ARTICULAR" in abq
     # the same model data under both: the Abaqus wrapper adds bones and bodies, not new cartilage
     assert _cards(shared).count("*ELEMENT") >= 6 and "C3D8" in shared
 
@@ -199,6 +202,9 @@ def test_smoke_simulation_of_a_real_knee_balances_with_physiological_contact(kne
         for side in ("medial", "lateral"):
             c = inc[side]
             assert c["force_n"] > 100 and 100 < c["area_mm2"] < 1500 and c["peak_pressure_mpa"] < 20, (side, c)
+    for inc in loaded:  # near extension the plates carry most of the load, the meniscus rings the rest
+        rings = inc["medial_meniscus"]["force_n"] + inc["lateral_meniscus"]["force_n"]
+        assert rings < 0.4 * (rings + inc["medial"]["force_n"] + inc["lateral"]["force_n"]), inc
     assert report["fe"]["seating"]["femur_shift_mm"] == pytest.approx(r["seating"]["femur_shift_mm"])
 
 
