@@ -42,3 +42,15 @@ def interpolate_layers(bottom: np.ndarray, top: np.ndarray, layers: int) -> np.n
     to ``top`` (both (P, 3)): ((layers + 1) * P, 3), layer by layer, bottom first."""
     frac = (np.arange(layers + 1) / layers)[:, None, None]
     return (bottom[None] + (top - bottom)[None] * frac).reshape(-1, 3)
+
+
+def ray_distances(origins: np.ndarray, direction: np.ndarray, points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Distance (mm) along unit ``direction`` (3,) from each origin (K, 3) to the first hit on the
+    triangle surface (points (P, 3) mm, triangles (T, 3)); NaN where a ray misses (Embree, trimesh)."""
+    import trimesh
+
+    surface = trimesh.Trimesh(points, triangles, process=False)
+    loc, index, _ = surface.ray.intersects_location(origins, np.tile(direction, (len(origins), 1)), multiple_hits=False)
+    out = np.full(len(origins), np.nan)
+    out[index] = (loc - origins[index]) @ direction
+    return out

@@ -149,20 +149,21 @@ def calculix(m: Model, flexion_deg: float | None = None, max_increment_deg: floa
     # femur 30-50 mm through flexion: 150-250 N on the sample at 50 deg), its tilt and spin held as by the
     # retinacula
     eid = m.next_element
-    for dof, k in enumerate(femur_springs(), 1):
-        w += [f"*ELEMENT, TYPE=SPRING1, ELSET=STAB_{eid}", f"{eid}, {m.ref['femur']}", f"*SPRING, ELSET=STAB_{eid}",
-              str(dof), f"{k:.6e}"]
-        eid += 1
-    for dof in (2, 3):
-        k = IE_RESTRAINT_NMM_RAD if dof == 3 else STABILISER_NMM_RAD
-        w += [f"*ELEMENT, TYPE=SPRING1, ELSET=STAB_{eid}", f"{eid}, {rot['femur']}", f"*SPRING, ELSET=STAB_{eid}", str(dof), f"{k:.6e}"]
-        eid += 1
-    for a, b, ks in ((m.ref["patella"], m.patella_anchor, (STABILISER_N_MM,) * 3),
-                     (rot["patella"], rot["femur"], (STABILISER_NMM_RAD, PATELLA_ROTATION_NMM_RAD, PATELLA_ROTATION_NMM_RAD))):
-        for dof, k in enumerate(ks, 1):
-            w += [f"*ELEMENT, TYPE=SPRING2, ELSET=STAB_{eid}", f"{eid}, {a}, {b}", f"*SPRING, ELSET=STAB_{eid}",
-                  f"{dof}, {dof}", f"{k:.6e}"]
-            eid += 1
+
+    def spring(nodes: tuple[int, ...], dof: int, k: float) -> list[str]:
+        """A linear spring on ``dof`` of one node (to the ground, SPRING1) or between two (SPRING2)."""
+        kind, dofs = ("SPRING1", str(dof)) if len(nodes) == 1 else ("SPRING2", f"{dof}, {dof}")
+        return [f"*ELEMENT, TYPE={kind}, ELSET=STAB_{eid}", f"{eid}, " + ", ".join(map(str, nodes)),
+                f"*SPRING, ELSET=STAB_{eid}", dofs, f"{k:.6e}"]
+
+    for nodes, stiffness in (((m.ref["femur"],), femur_springs()),
+                             ((rot["femur"],), (0.0, STABILISER_NMM_RAD, IE_RESTRAINT_NMM_RAD)),
+                             ((m.ref["patella"], m.patella_anchor), (STABILISER_N_MM,) * 3),
+                             ((rot["patella"], rot["femur"]), (STABILISER_NMM_RAD, PATELLA_ROTATION_NMM_RAD, PATELLA_ROTATION_NMM_RAD))):
+        for dof, k in enumerate(stiffness, 1):
+            if k > 0:  # the femur's flexion (its ROT node's dof 1) is driven, not sprung
+                w += spring(nodes, dof, k)
+                eid += 1
     w += [f"*NSET, NSET=FEMUR_REF\n{m.ref['femur']}", f"*NSET, NSET=ROTS\n{', '.join(str(n) for n in rot.values())}"]
     outputs = ["*NODE PRINT, NSET=REFS", "U", "*NODE PRINT, NSET=ROTS", "U", "*NODE PRINT, NSET=TIBIA_BODY, TOTALS=ONLY", "RF",
                "*NODE PRINT, NSET=LIGAMENT_ENDS", "U"]

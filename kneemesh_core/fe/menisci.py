@@ -28,6 +28,8 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
+from kneemesh_core.geometry import ray_distances
+
 #: How far the wedge reaches over the plate from its rim, and beyond the rim, mm (a meniscus
 #: covers the outer third or so of a plate; its body is 8-12 mm wide).
 INNER_MM, OUTER_MM = 6.0, 3.0
@@ -80,17 +82,6 @@ def outline(uv: np.ndarray, spacing_mm: float = SPACING_MM) -> np.ndarray:
     return out if area > 0 else out[::-1]
 
 
-def _heights(origins: np.ndarray, direction: np.ndarray, points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Distance (mm) along unit ``direction`` from each origin (K, 3) to the surface, NaN on a miss."""
-    import trimesh
-
-    surface = trimesh.Trimesh(points, triangles, process=False)
-    loc, index, _ = surface.ray.intersects_location(origins, np.tile(direction, (len(origins), 1)), multiple_hits=False)
-    out = np.full(len(origins), np.nan)
-    out[index] = (loc - origins[index]) @ direction
-    return out
-
-
 def wedge(plate: tuple[np.ndarray, np.ndarray], femoral: list[tuple[np.ndarray, np.ndarray]], axis: np.ndarray,
           other_centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A meniscus surrogate on one tibial plate.
@@ -130,12 +121,12 @@ def wedge(plate: tuple[np.ndarray, np.ndarray], femoral: list[tuple[np.ndarray, 
     flat = q.reshape(-1, 2) @ basis  # on the plane through the origin, (I*J, 3)
     along = pts @ axis
     top_of_box = along.max() + 50.0
-    base = top_of_box - _heights(flat + top_of_box * axis, -axis, pts, tris)
+    base = top_of_box - ray_distances(flat + top_of_box * axis, -axis, pts, tris)
     miss = ~np.isfinite(base)
     if miss.any():  # beyond the plate: the height of its nearest node
         base[miss] = along[cKDTree(uv).query(q.reshape(-1, 2)[miss])[1]]
     below = 20.0  # rays start this far below the plate, so a femur that overlaps it is found too
-    gaps = np.stack([_heights(flat + (base - below)[:, None] * axis, axis, *f) for f in femoral])
+    gaps = np.stack([ray_distances(flat + (base - below)[:, None] * axis, axis, *f) for f in femoral])
     gap = np.where(np.isfinite(gaps).any(0), np.min(np.nan_to_num(gaps, nan=np.inf), axis=0), np.nan) - below
     rise = HEIGHT_MM * np.clip((stations + INNER_MM) / INNER_MM, 0.0, 1.0)
     top = base + np.minimum(np.nan_to_num(gap, nan=np.inf) - CLEARANCE_MM, np.tile(rise, len(run)))

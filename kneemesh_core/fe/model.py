@@ -49,7 +49,7 @@ import numpy as np
 import pyvista as pv
 
 from kneemesh_core.errors import KneeMeshError
-from kneemesh_core.geometry import quad_node_areas
+from kneemesh_core.geometry import quad_node_areas, ray_distances
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES
 
 #: Cartilage modulus behind the contact stiffness, MPa (instantaneous compressive modulus of
@@ -312,19 +312,8 @@ def _articular_faces(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
 def gaps(m: Model, slave: str, master: str, direction: np.ndarray) -> np.ndarray:
     """Distance (mm) from each articular node of ``slave`` along unit ``direction`` to the articular
     surface of ``master``: negative where the two overlap, NaN where the ray misses it."""
-    import trimesh
-
-    quads, ids = _articular_faces(m, master)
-    local = np.searchsorted(ids, quads)
-    surface = trimesh.Trimesh(np.stack([m.nodes[int(i)] for i in ids]),  # Embree rays
-                              np.concatenate([local[:, [0, 1, 2]], local[:, [0, 2, 3]]]), process=False)
-    pts = np.stack([m.nodes[int(i)] for i in _articular_faces(m, slave)[1]])
     back = 20.0  # rays start this far behind each node, so an overlap is found too
-    locations, index, _ = surface.ray.intersects_location(pts - back * direction, np.tile(direction, (len(pts), 1)),
-                                                          multiple_hits=False)
-    out = np.full(len(pts), np.nan)
-    out[index] = (locations - (pts[index] - back * direction)) @ direction - back
-    return out
+    return ray_distances(_surface(m, slave)[0] - back * direction, direction, *_surface(m, master)) - back
 
 
 def _move(m: Model, body: str, shift: np.ndarray) -> None:
