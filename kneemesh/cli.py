@@ -365,7 +365,7 @@ def train(
     max_minutes: float = typer.Option(0.0, "--max-minutes", help="Time budget in minutes: the learning-rate schedule runs on the clock and ends with it (0: none)."),
     seed: int = typer.Option(0, "--seed"),
 ):
-    """Train the segmentation network on synthetic DESS images of label maps; export ONNX (needs the train extra)."""
+    """Train the segmentation network on synthetic images of label maps (random and DESS-like contrast); export ONNX (needs the train extra)."""
     with _clear_errors():
         try:
             from kneemesh_core.segmentation.train import TrainOptions, train as run_training

@@ -7,7 +7,7 @@ Training slices come from :func:`sample`: a random slice of a random subject
 (mostly slices with cartilage), a random crop (mostly around cartilage, the rest
 anywhere, so the bone shafts far from the joint and cut by the field of view
 are seen too),
-the paper's geometric augmentation, then synthetic DESS contrast (:mod:`.synth`).
+the paper's geometric augmentation, then a random or DESS-like contrast (:mod:`.synth`).
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def synthetic_image(path: str | Path, seed: int) -> tuple[sitk.Image, sitk.Image
 
     labels = load_knee(path).labels
     classes = subject_from_labels(labels, Path(path).name, subject_id(path)).labels
-    arr = np.stack([synthesize(sl, np.random.default_rng(seed), p_intensity=0.0) for sl in classes])
+    arr = np.stack([synthesize(sl, np.random.default_rng(seed), p_intensity=0.0, p_dess=1.0) for sl in classes])
     img = sitk.GetImageFromArray((arr * 1000).astype(np.float32))
     img.CopyInformation(sitk.DICOMOrient(labels, NET_ORIENTATION))
     return reorient_like(img, labels), labels

@@ -1,23 +1,24 @@
-"""DESS-like training slices synthesised from label maps, with the paper's augmentation.
+"""Training slices synthesised from label maps: random contrast, DESS-like contrast, the paper's augmentation.
 
 No real DESS image with labels is reachable, so the network learns from real
 anatomy (manual OAI label maps, pymskt maps, phantoms) dressed in randomised
-contrast, in the spirit of SynthSeg (Billot et al. 2023): every slice draws its
-own tissue intensities around water-excitation DESS contrast (fluid brightest,
-cartilage bright, muscle intermediate, marrow and fat dark, cortex darkest),
-the background is cut into random extra tissue classes (one of them often as
-dark as marrow, so a bone must be told by its cortex and shape, not by its
-contrast), air often surrounds the leg beyond a wavy skin line lined with dark
-fat, marrow is grainy (trabecular) or flat, a film of synovial fluid may line
-the cartilage, and then partial-volume blur, a bias field, a coarser
-acquisition along one axis and Rician noise are applied.  The geometry is
-augmented before the contrast is drawn, as in the paper: rotation up to 30 deg
-half the time, elastic and grid distortion and brightness/contrast
-changes up to 30 % of the time.
+contrast, after SynthSeg (Billot et al. 2023): a network that never sees one
+contrast twice has to learn the shapes.  Most slices (:func:`random_contrast`)
+give every sub-tissue (marrow, cortex, cartilage, fluid film, subcutaneous
+fat, air, soft tissue around the bones, random pseudo-tissues) a uniformly
+random grey; the rest (:data:`P_DESS`, :func:`dess_like`) draw tissue
+intensities around water-excitation DESS contrast (fluid brightest, cartilage
+bright, muscle intermediate, marrow and fat dark, cortex darkest, grainy or
+flat marrow, a background tissue often as dark as marrow).  Both then pass
+through one acquisition (:func:`acquire`): texture, partial-volume blur, a
+bias field, a coarser acquisition along one axis and Rician noise.  The
+geometry is augmented before the contrast is drawn, as in the paper: rotation
+up to 30 deg half the time, elastic and grid distortion and
+brightness/contrast/gamma changes up to 30 % of the time.
 
 All functions work on one 2-D slice (H, W) in the network's classes
-(:data:`.preprocess.NET_CLASSES`) and return float32 intensities normalised as
-at inference (:func:`.preprocess.normalise`).
+(:data:`.preprocess.NET_CLASSES`) and return float32 intensities; :func:`synthesize`
+and :func:`acquire` normalise them as at inference (:func:`.preprocess.normalise`).
 """
 
 from __future__ import annotations
@@ -90,8 +91,21 @@ def augment_geometry(labels: np.ndarray, rng: np.random.Generator, p_rotate: flo
     return ndi.map_coordinates(labels, [y + cy, x + cx], order=0, mode="constant", cval=0)
 
 
-def synthesize(labels: np.ndarray, rng: np.random.Generator, p_intensity: float = 0.3) -> np.ndarray:
-    """A DESS-like image (H, W) float32 (normalised) of a label slice in network classes."""
+#: The share of training slices drawn in DESS-like contrast (:func:`dess_like`); the rest get a
+#: random contrast (:func:`random_contrast`), so that the network learns shapes, not one contrast.
+P_DESS = 0.3
+
+
+def synthesize(labels: np.ndarray, rng: np.random.Generator, p_intensity: float = 0.3,
+               p_dess: float = P_DESS) -> np.ndarray:
+    """A training image (H, W) float32 (normalised) of a label slice in network classes: DESS-like
+    with probability ``p_dess``, else in random contrast; then the acquisition (:func:`acquire`)."""
+    layout = dess_like if rng.random() < p_dess else random_contrast
+    return acquire(layout(labels, rng), rng, p_intensity)
+
+
+def dess_like(labels: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Tissue intensities (H, W) float32 around water-excitation DESS contrast (:data:`RANGES`)."""
     shape = labels.shape
     img = np.zeros(shape, np.float32)
     # background: 2-5 random tissue classes (fat, muscle, tendon, vessels...) with soft borders
@@ -126,8 +140,55 @@ def synthesize(labels: np.ndarray, rng: np.random.Generator, p_intensity: float 
         img[rim] = cortex
     for c in CARTILAGES:
         img[labels == c] = base * rng.uniform(0.85, 1.15)
-    # texture within tissues, partial volume, bias field
-    img *= 1.0 + rng.uniform(0.0, 0.15) * _smooth_noise(shape, rng.uniform(1.0, 4.0), rng)
+    return img
+
+
+def random_contrast(labels: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Tissue intensities (H, W) float32 in a random contrast, after SynthSeg (Billot et al. 2023).
+
+    The slice is cut into sub-tissues (each bone's marrow and cortex, each cartilage, a fluid film
+    on the cartilage, subcutaneous fat under a skin line, air beyond it, a band of soft tissue
+    around the bones, and 2-6 random smooth pseudo-tissues elsewhere), and every sub-tissue gets
+    its own mean intensity drawn uniformly in [0, 1] and its own grain.  The bones share one
+    marrow and the cartilages one grey 60 % of the time (as in any real contrast), else each draws
+    its own, so that neither bone nor cartilage can be told by its grey alone.
+    """
+    shape = labels.shape
+    k = int(rng.integers(2, 7))
+    fields = np.stack([_smooth_noise(shape, rng.uniform(4, 30), rng) for _ in range(k)])
+    sub = fields.argmax(0).astype(np.int32) + 20  # background pseudo-tissues 20..
+    bone = np.isin(labels, BONES)
+    if bone.any() and rng.random() < 0.5:  # soft tissue hugging the bones (periosteum, muscle insertions)
+        band = ndi.binary_dilation(bone, iterations=int(rng.integers(3, 15))) & (labels == 0)
+        sub[band] = 10
+    if rng.random() < 0.6:  # skin line, subcutaneous fat, air
+        depth = _depth_below_skin(labels, rng)
+        sub[(depth >= 0) & (depth < rng.uniform(4, 25)) & (labels == 0)] = 11
+        sub[depth < 0] = 12
+    cart = np.isin(labels, CARTILAGES)
+    if rng.random() < 0.7:
+        film = ndi.binary_dilation(cart, iterations=int(rng.integers(1, 4))) & (labels == 0)
+        sub[film & (_smooth_noise(shape, 4.0, rng) > rng.uniform(-1.0, 0.5))] = 13
+    shared = rng.random() < 0.6
+    for c in BONES:
+        m = labels == c
+        rim = m & ~ndi.binary_erosion(m, iterations=int(rng.integers(1, 4)))
+        sub[m] = 1 if shared else c
+        sub[rim] = 4 if shared else c + 3  # cortex
+    for c in CARTILAGES:
+        sub[labels == c] = 7 if shared else c + 3
+    means = rng.uniform(0.0, 1.0, sub.max() + 1).astype(np.float32)
+    grain = rng.uniform(0.0, 0.12, sub.max() + 1).astype(np.float32)
+    noise = _smooth_noise(shape, rng.uniform(0.5, 2.0), rng)
+    return np.clip(means[sub] + grain[sub] * noise, 0.0, None)
+
+
+def acquire(img: np.ndarray, rng: np.random.Generator, p_intensity: float = 0.3) -> np.ndarray:
+    """What a scanner does to tissue intensities (H, W): texture, partial-volume blur, a bias field,
+    a coarser acquisition along one axis 30 % of the time, Rician noise; normalised as at inference,
+    then brightness, contrast and gamma with probability ``p_intensity``."""
+    shape = img.shape
+    img = img * (1.0 + rng.uniform(0.0, 0.15) * _smooth_noise(shape, rng.uniform(1.0, 4.0), rng))
     img = ndi.gaussian_filter(img, rng.uniform(0.3, 1.0))
     yy, xx = np.meshgrid(np.linspace(-1, 1, shape[0], dtype=np.float32), np.linspace(-1, 1, shape[1], dtype=np.float32),
                          indexing="ij")

@@ -1,4 +1,4 @@
-"""``kneemesh train``: fit the residual U-Net on synthetic DESS slices of label maps, export ONNX.
+"""``kneemesh train``: fit the residual U-Net on synthetic slices of label maps (random and DESS-like contrast), export ONNX.
 
 Needs the ``train`` extra (PyTorch).  Steps: load every label map of the data
 folders, split them by subject into training, validation and test sets (the
@@ -70,7 +70,7 @@ class _Slices(torch.utils.data.IterableDataset):
 
 
 def _validation_set(subjects: list[Subject], n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Whole slices with cartilage from the validation subjects, with fixed synthetic contrast."""
+    """Whole slices with cartilage from the validation subjects, in fixed synthetic contrasts drawn as in training."""
     rng = np.random.default_rng(seed)
     imgs, labs = [], []
     for i in range(n):
