@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from scipy import ndimage as ndi
 
 from conftest import OAI, PYMSKT_LEFT, real
 from kneemesh_core.errors import KneeMeshError
@@ -18,6 +19,7 @@ from kneemesh_core.segmentation.evaluate import compare
 from kneemesh_core.segmentation.infer import DEFAULT_MODEL, SegmentationModel, segment
 from kneemesh_core.segmentation.postprocess import clean_classes
 from kneemesh_core.segmentation.preprocess import NET_CLASSES, NET_ORIENTATION, from_slices, to_slices
+from kneemesh_core.segmentation.synth import synthesize
 from kneemesh_core.tissues import LABEL
 
 torch = pytest.importorskip("torch")
@@ -160,11 +162,48 @@ def test_synthetic_pairs_keep_labels_and_vary(tmp_path):
     for img, lab in pairs:
         assert img.shape == lab.shape == (128, 128) and img.dtype == np.float32 and np.isfinite(img).all()
         assert lab.max() <= len(NET_CLASSES) - 1
-    # cartilage reads brighter than bone marrow in every DESS-like draw that has both
-    for img, lab in pairs:
-        if (lab == 4).sum() > 20 and (lab == 1).sum() > 200:
-            assert img[lab == 4].mean() > img[lab == 1].mean()
     assert np.std([img.mean() for img, _ in pairs]) > 0.01  # contrast is randomised
+
+
+def test_dess_like_draws_keep_dess_contrast_and_random_draws_do_not():
+    """DESS-like slices: cartilage brighter than marrow in every draw.  Random-contrast slices (most
+    of training): the order of the tissues' greys changes from draw to draw, so the network cannot
+    tell a tissue by its grey."""
+    lab = load_subject(real(OAI / "OAI_AKOA_9014797_00m.nii.gz")).labels
+    k = int(np.argmax(((lab == 4).sum((1, 2)) > 300) & ((lab == 1).sum((1, 2)) > 5000)))
+    sl = lab[k]
+    assert (sl == 4).sum() > 300 and (sl == 1).sum() > 5000
+    rng = np.random.default_rng(1)
+    dess = [synthesize(sl, rng, p_dess=1.0) for _ in range(8)]
+    assert all(img[sl == 4].mean() > img[sl == 1].mean() for img in dess)
+    brighter = [bool(img[sl == 4].mean() > img[sl == 1].mean()) for img in (synthesize(sl, rng, p_dess=0.0)
+                                                                           for _ in range(24))]
+    assert 3 <= sum(brighter) <= 21, brighter  # both orders occur
+    for img in dess:
+        assert img.dtype == np.float32 and np.isfinite(img).all()
+
+
+def test_evaluation_styles_have_their_contrast_on_the_label_grid():
+    """The held-out styles: T1 and proton density (fatty marrow bright), fat-suppressed T2 (marrow
+    dark), plain DESS (cartilage brighter than marrow), each on the label map's own grid."""
+    from kneemesh_core.knee import load_knee
+    from kneemesh_core.segmentation.styles import style_image
+
+    labels = load_knee(real(OAI / "OAI_AKOA_9014797_00m.nii.gz")).labels
+    lab = sitk.GetArrayFromImage(labels)
+    mean = {}
+    for style in ("t1", "t2_fat_sat", "pd", "plain_dess"):
+        img = style_image(labels, style, seed=0)
+        for get in ("GetSize", "GetSpacing", "GetOrigin", "GetDirection"):
+            assert getattr(img, get)() == getattr(labels, get)()
+        arr = sitk.GetArrayFromImage(img)
+        assert np.isfinite(arr).all()
+        marrow = arr[(lab == LABEL["femur"]) & (ndi.binary_erosion(lab == LABEL["femur"], iterations=3))].mean()
+        mean[style] = {"marrow": marrow, "cartilage": arr[lab == LABEL["femoral_cartilage"]].mean()}
+    assert mean["t1"]["marrow"] > 1.5 * mean["t1"]["cartilage"]
+    assert mean["t2_fat_sat"]["marrow"] < 0.6 * mean["t2_fat_sat"]["cartilage"]
+    assert mean["pd"]["marrow"] > 1.2 * mean["pd"]["cartilage"]
+    assert mean["plain_dess"]["cartilage"] > 2.0 * mean["plain_dess"]["marrow"]
 
 
 def test_short_training_run(tmp_path):
@@ -198,10 +237,11 @@ def test_shipped_model_segments_an_unseen_phantom(side):
         assert getattr(got, get)() == getattr(image, get)()
     assert result.knee.side == side
     scores = compare(got, truth)
-    # the phantom's contrast is not the training contrast: the cartilages and the patella hold up
-    # (0.89-0.98 Dice); the femur and tibia reach 0.90-0.95, spilling a little into the phantom's
-    # flat muscle (model card)
+    # the phantom's contrast is not a training contrast: the patella reaches 0.95-0.96 Dice, the femur
+    # 0.92-0.95 and the tibia 0.86 (spilling into the phantom's flat muscle), the cartilages 0.74-0.86
+    # with ASSD 0.26-0.60 mm (the model card's limits: the random-contrast model is weaker here than
+    # the DESS-only one was, 0.89-0.95, and far stronger on T1 and proton-density images)
     assert scores["patella"]["dice"] > 0.9, scores
-    assert scores["femur"]["dice"] > 0.88 and scores["tibia"]["dice"] > 0.85, scores
+    assert scores["femur"]["dice"] > 0.88 and scores["tibia"]["dice"] > 0.82, scores
     for cart in ("femoral_cartilage", "medial_tibial_cartilage", "lateral_tibial_cartilage", "patellar_cartilage"):
-        assert scores[cart]["dice"] > 0.8 and scores[cart]["assd_mm"] < 0.5, scores
+        assert scores[cart]["dice"] > 0.7 and scores[cart]["assd_mm"] < 0.7, scores
