@@ -7,7 +7,8 @@ is in the model's .json) gets an image in each style, is segmented through the w
 path (reorientation, batching, post-processing, plate split) and compared with its labels: Dice,
 ASSD and HD95 per tissue, a table per style.  Styles: ``dess`` is the training's own DESS-like
 synthesis (one contrast draw per volume, no geometric augmentation); the others are the fixed
-contrasts of :mod:`kneemesh_core.segmentation.styles` (T1, fat-suppressed T2, plain DESS), made
+contrasts of :mod:`kneemesh_core.segmentation.styles` (T1, fat-suppressed T2, proton density,
+plain DESS), made
 in 3-D by code that training never calls.  Speed: wall time and peak memory per volume on this
 machine.
 Real DESS: the pyKNEEr qDESS series in ../shared is segmented and overlay PNGs of a few
@@ -57,13 +58,16 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict[str, dict] = {}
     times = []
+    truths: dict[str, object] = {}  # each map's canonical labels, read once for every style
     for style in args.styles:
         rows = []
         for i, path in enumerate(maps):
             if style == "dess":
                 image, truth = synthetic_image(path, seed=1000 + i)
             else:
-                truth = load_knee(path).labels
+                if path not in truths:
+                    truths[path] = load_knee(path).labels
+                truth = truths[path]
                 image = style_image(truth, style, seed=1000 + i)
             t0 = time.perf_counter()
             result = segment(Volume(image, Path(path).name), net)
