@@ -130,6 +130,25 @@ def test_clean_classes_cuts_a_bone_leaking_through_a_bridge_and_keeps_the_patell
     assert (out[5:25, 30:50, 20:36] == 3).all() and (out[5:25, 30:50, 36:38] == 6).all()
 
 
+def test_clean_classes_drops_slices_of_bone_far_from_its_cartilage_and_cartilage_off_its_bone():
+    """PIR slices (S, H, W): H runs superior to inferior.  Muscle above the condyles read as femur
+    over eight slices beside the shaft, joined to it in 3-D by a thick face (no opening cuts it),
+    and a 'tibial cartilage' speck in the muscle behind, as the network read the real DESS."""
+    sp = (1.0, 0.4, 0.4)
+    c = np.zeros((40, 140, 140), np.uint8)
+    c[5:35, 60:100, 40:100] = 1  # condyles, 30 mm wide
+    c[15:25, 0:60, 55:85] = 1  # the shaft, 10 mm wide, up to the field's edge
+    c[5:35, 100:104, 40:100] = 4  # femoral cartilage under the condyles
+    c[5:35, 106:140, 40:100] = 2  # tibia
+    c[5:35, 104:106, 40:100] = 5  # its cartilage
+    c[25:33, 0:30, 40:100] = 1  # "femur" in the muscle beside the shaft, far from any cartilage
+    c[10:14, 20:30, 115:130] = 5  # "tibial cartilage" 30 mm above the tibia
+    out = clean_classes(c, sp)
+    assert (out[25:33, 0:30, 40:100] == 0).all()  # the muscle is gone, slice by slice
+    assert (out[15:25, 0:60, 55:85] == 1).all() and (out[5:35, 60:100, 40:100] == 1).all()  # the femur is whole
+    assert (out[10:14, 20:30, 115:130] == 0).all()
+    assert (out == 5).sum() == (c[:, 104:106] == 5).sum()  # the plate on the tibia stays whole
+
 def test_compare_metrics():
     a = np.zeros((20, 40, 40), np.uint8)
     a[5:15, 10:30, 10:30] = LABEL["femur"]
