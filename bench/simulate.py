@@ -1,11 +1,12 @@
 """Simulation benchmark: CalculiX runs of the decks of real knees, smoke (to 15 deg) and full (to 90 deg).
 
-    .venv/bin/python bench/simulate.py [MAPS_OR_GLOBS ...] [--full N] [--element-size 1.0] [--timeout 1800] [--json F]
+    .venv/bin/python bench/simulate.py [MAPS_OR_GLOBS ...] [--full N] [--element-size 1.0] [--timeout 1800] [--json F] [--threads T]
 
 Default maps: the real label maps in ../shared/data/real (pymskt and oai_labels).  Each knee is meshed
 as the job does (bones, cartilage, anatomy, decks), then simulated: smoke on every knee, full flexion on
 the first N (listed).  Prints completion, time, the reason of each failure, the contact figures at the
-end of the run and the femur's force balance; one knee at a time (ccx runs on one thread).
+end of the run, the femur's force balance and the plates' peak pressure over the run; one knee at a time
+(ccx on ``--threads``).
 """
 
 from __future__ import annotations
@@ -46,8 +47,9 @@ def one(path: str, element_size: float, full: bool, timeout: float) -> dict:
                 out[kind] = {"completed": False, "reason": f"{type(exc).__name__}: {exc}", "seconds": 0.0}
                 continue
             last = r["increments"][-1] if r["increments"] else {}
+            peak = max((i[side]["peak_pressure_mpa"] for i in r["increments"] for side in ("medial", "lateral")), default=0.0)
             out[kind] = {"completed": r["completed"], "reason": r["reason"], "seconds": r["seconds"],
-                         "reached": r["reached_flexion_deg"], "last": last}
+                         "reached": r["reached_flexion_deg"], "last": last, "plate_peak_mpa": peak}
         return out
 
 
@@ -58,7 +60,12 @@ def main() -> None:
     ap.add_argument("--element-size", type=float, default=1.0)
     ap.add_argument("--timeout", type=float, default=1800.0)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--threads", type=int, help="ccx threads per run (default: the product's, up to 2)")
     args = ap.parse_args()
+    if args.threads:
+        import kneemesh_core.fe.simulate
+
+        kneemesh_core.fe.simulate.CCX_THREADS = args.threads
     maps = [p for m in args.maps for p in sorted(glob.glob(m))] or [
         str(p) for p in sorted((REAL / "pymskt" / "labels").glob("*.nrrd")) + sorted((REAL / "oai_labels").glob("*.nii.gz"))]
     rows = []
@@ -72,7 +79,8 @@ def main() -> None:
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1, default=float))
     table = Table(title=f"CalculiX runs of {len(rows)} knees (element size {args.element_size} mm)")
-    for col in ("run", "completed", "seconds: median (max)", "medial N / mm^2 / peak MPa", "lateral", "balance error max"):
+    for col in ("run", "completed", "seconds: median (max)", "medial N / mm^2 / peak MPa", "lateral", "balance error max",
+                "plates' peak MPa over the run: median (max)"):
         table.add_column(col)
     for kind in ("smoke", "full"):
         rs = [r[kind] for r in rows if kind in r]
@@ -89,7 +97,9 @@ def main() -> None:
             return " / ".join(f"{q:.0f}" if j < 2 else f"{q:.1f}" for j, q in enumerate(np.median(v, 0)))
 
         table.add_row(kind, f"{len(done)}/{len(rs)}", f"{np.median(secs):.0f} ({secs.max():.0f})", fig("medial"), fig("lateral"),
-                      f"{max((x['last']['balance_error'] for x in done), default=float('nan')):.4f}")
+                      f"{max((x['last']['balance_error'] for x in done), default=float('nan')):.4f}",
+                      f"{np.median([x['plate_peak_mpa'] for x in done]):.1f} ({max(x['plate_peak_mpa'] for x in done):.1f})"
+                      if done else "-")
     console.print(table)
     for r in rows:
         for kind in ("smoke", "full"):

@@ -91,6 +91,8 @@ def check_sites(anatomy) -> None:
                 mesh = anatomy.bones[e["bone"]]
                 assert np.linalg.norm(mesh.points[e["node"]] - e["lps_mm"]) < 3.0, f["name"]
         assert f["slack_length_mm"] > 0 and f["stiffness_n"] > 0
+        if f["bundle"] == "ITB":  # cut at the knee, strained as the whole band to the pelvis
+            assert f["path_beyond_mm"] > 300 and f["slack_length_mm"] > f["path_beyond_mm"]
     assert rule_violations(doc["fibres"], anatomy.frames) == []
 
 

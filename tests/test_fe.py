@@ -125,6 +125,22 @@ def test_the_preload_depth_carries_the_load_by_the_linear_law():
     assert preload_depth([missed], [np.append(area, 50.0)], [4.0], 1000.0) == pytest.approx(1.25)
 
 
+def test_the_itb_strains_as_the_whole_band_not_as_its_segment_over_the_knee():
+    """The ITB is cut at the knee but runs on to the pelvis: 10 mm more between its ends is 10 mm on a
+    535 mm band (the toe of its law, some 15 N), not on a 77 mm fibre (about 1000 N)."""
+    from kneemesh_core.anatomy import template
+    from kneemesh_core.fe.model import TRANSITION_STRAIN, blankevoort
+
+    itb = next(f for f in template.load().fibres if f.bundle == "ITB")
+    segment = float(np.linalg.norm(itb.ends[0].point - itb.ends[1].point))
+    length = segment + itb.path_beyond_mm
+    assert length == pytest.approx(itb.slack_length_mm, rel=0.01) and itb.reference_strain == 0
+    force, elongation = np.array(blankevoort(itb.stiffness_n, length, length)).T  # slack as placed: no strain
+    strain = 10.0 / length
+    assert np.interp(10.0, elongation, force) == pytest.approx(itb.stiffness_n * strain ** 2 / (2 * TRANSITION_STRAIN), rel=0.05)
+    assert np.interp(10.0, elongation, force) < 30
+
+
 def test_a_missing_ccx_and_a_skipped_card_are_clear_errors(tmp_path, monkeypatch):
     (tmp_path / "bad.inp").write_text("*HEADING\nx\n*PART, NAME=P\n*NODE\n1, 0, 0, 0\n*STEP\n*STATIC\n*END STEP\n")
     with pytest.raises(KneeMeshError) as e:
@@ -220,6 +236,8 @@ def test_a_run_whose_femur_loses_the_tibia_is_not_completed():
     assert first_invalid(good) is None  # the seating step is judged at its end only
     reason = first_invalid(good + [inc(1.8, 72.0, 0.0, 0.88)])
     assert reason and "72.0 deg" in reason and "lost the tibia" in reason
+    reason = first_invalid(good + [inc(2.0, 90.0, 2013.0, 0.051)])  # contact kept, forces off by 5.1 %
+    assert reason and "5.1%" in reason and "lost the tibia" not in reason
 
 
 def _disk(radius: float, centre, spacing: float = 1.0):

@@ -9,7 +9,9 @@ stay on the registered template fibula (the job meshes no fibula): their ``node`
 Slack lengths come from each fibre's **reference strain**: Lenhart's model states each fibre's
 strain in its reference (extended) pose (``ReferenceStrain`` in its SIMM file), and the subject's
 fibre is given that strain in the image pose, ``L0 = L / (1 + e_ref)`` along the straight line
-between its ends (the calibration of Lenhart 2015 and OpenSim JAM).  Scaling the template's slack
+between its ends (the calibration of Lenhart 2015 and OpenSim JAM), plus, for the ITB, the part of
+its path beyond the knee (``path_beyond_mm``: to the pelvis, scaled with the femur), which the
+knee's motion leaves unchanged but which sets how much strain a millimetre of it is.  Scaling the template's slack
 length with the bones instead left a knee whose patella sits higher than the template's with its
 patellar tendon 30-40 % stretched in the image pose (OAI 9357383: the seated patella was pulled
 14 mm down and off the trochlea).  This assumes the image pose is near extension, as in OAI's
@@ -96,14 +98,18 @@ def place(bones: dict[str, pv.PolyData], side: str, plates: tuple[np.ndarray, np
                              snapped_mm=round(float(np.linalg.norm(closest[0] - mapped)), 3))
             ends.append(entry)
         strain = fibre.reference_strain
+        scale = regs["femur"].similarity.scale if "femur" in regs else 1.0
+        beyond = fibre.path_beyond_mm * scale  # hip to knee scales with the femur
         item = {"name": fibre.name, "bundle": fibre.bundle, "stiffness_n": fibre.stiffness_n,
                 "template_slack_length_mm": fibre.slack_length_mm, "reference_strain": round(strain, 4), "ends": ends}
         if all(e["lps_mm"] is not None for e in ends):
-            length = float(np.linalg.norm(np.subtract(ends[0]["lps_mm"], ends[1]["lps_mm"])))
+            length = float(np.linalg.norm(np.subtract(ends[0]["lps_mm"], ends[1]["lps_mm"]))) + beyond
             item.update(length_mm=round(length, 3), slack_length_mm=round(length / (1.0 + strain), 3))
         else:
             scales = [regs[e.bone].similarity.scale for e in fibre.ends if e.bone in regs]
             item["slack_length_mm"] = round(fibre.slack_length_mm * float(np.mean(scales or [1.0])), 3)
+        if beyond:
+            item["path_beyond_mm"] = round(beyond, 3)
         if fibre.note:
             item["note"] = fibre.note
         fibres.append(item)

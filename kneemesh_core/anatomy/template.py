@@ -48,6 +48,9 @@ class Fibre:
     reference_strain: float  # in the model's reference pose (extension), from its SIMM file
     ends: tuple[FibreEnd, FibreEnd]
     note: str | None = None
+    # the part of the fibre's path beyond its two ends that the knee's motion leaves unchanged (mm):
+    # the ITB, cut at the knee, runs on to the pelvis; 0 for a fibre whose ends are its ends
+    path_beyond_mm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -67,7 +70,7 @@ def load() -> Template:
     fibres = tuple(
         Fibre(f["name"], f["bundle"], f["stiffness_n"], f["slack_length_mm"], f["reference_strain"],
               tuple(FibreEnd(e["bone"], e["surface"], np.asarray(e["point_mm"], float)) for e in f["ends"]),
-              f.get("note"))
+              f.get("note"), f.get("path_beyond_mm", 0.0))
         for f in raw["fibres"])
     surfaces = {bone: pv.read(path) for bone, path in SURFACE_FILES.items()}
     return Template(raw["source"], fibres, surfaces)

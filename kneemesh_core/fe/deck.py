@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from kneemesh_core import __version__
-from kneemesh_core.fe.model import (AP_RESTRAINT_N_MM, IE_RESTRAINT_NMM_RAD, PAIRS, PATELLA_ROTATION_NMM_RAD,
+from kneemesh_core.fe.model import (AP_RESTRAINT_N_MM, CARTILAGE_MODULUS_MPA, CARTILAGE_POISSON, CONFINED_MODULUS_MPA,
+                                    IE_RESTRAINT_NMM_RAD, PAIRS, PATELLA_ROTATION_NMM_RAD,
                                     QUADRICEPS_SLACK_MM, STABILISER_N_MM, STABILISER_NMM_RAD, Model, blankevoort,
                                     quadriceps_law)
 from kneemesh_core.io.files import atomic_write_text
@@ -102,14 +103,17 @@ def shared(m: Model) -> str:
     w.append("** ligaments: Blankevoort 1991 (e = L/L0 - 1, e_t = 0.06), force (N) against elongation from the initial length (mm)")
     for s in m.springs:
         w += [f"** {s.name}: k {s.stiffness_n:g} N/strain, slack length {s.slack_length_mm:.3f} mm, "
-              f"initial length {s.length_mm:.3f} mm", f"*SPRING, ELSET=LIG_{s.name}, NONLINEAR", ""]
+              f"initial length {s.length_mm:.3f} mm" + (f" ({s.beyond_mm:.3f} mm of it beyond its nodes)" if s.beyond_mm else ""),
+              f"*SPRING, ELSET=LIG_{s.name}, NONLINEAR", ""]
         w += [f"{f:.6e}, {d:.6e}" for f, d in blankevoort(s.stiffness_n, s.slack_length_mm, s.length_mm)]
     w += [f"** quadriceps (patella to the femoral shaft): {m.load.quadriceps_n:g} N at its initial length, +1 N/mm as it "
           f"lengthens, slack {QUADRICEPS_SLACK_MM:g} mm shorter", "*SPRING, ELSET=QUADRICEPS, NONLINEAR", ""]
     w += [f"{f:.6e}, {d:.6e}" for f, d in quadriceps_law(m.load.quadriceps_n, q.length_mm)]
+    w += [f"** contact: a thin elastic layer on bone, M = (1 - nu) E / ((1 + nu)(1 - 2 nu)), E {CARTILAGE_MODULUS_MPA:g} MPa, "
+          f"nu {CARTILAGE_POISSON:g}"]
     for name, (slave, master) in m.pairs.items():
         k = m.contact_k[name]
-        why = (f"K = E / (h_{slave} + h_{master}) = 10 MPa / ({m.parts[slave].thickness_mm:.3f} + "
+        why = (f"K = M / (h_{slave} + h_{master}) = {CONFINED_MODULUS_MPA:.2f} MPa / ({m.parts[slave].thickness_mm:.3f} + "
                f"{m.parts[master].thickness_mm:.3f} mm)" if name in PAIRS
                else "meniscus surrogate (rigid, with the tibia): K of its compartment")
         w += [f"** {name}: {why} = {k:.4f} N/mm^3",
@@ -243,7 +247,7 @@ def meta(m: Model, flexion_deg: float) -> dict:
         "stabiliser_n_mm": STABILISER_N_MM, "femur_springs_n_mm": list(femur_springs()), "patella_anchor": m.patella_anchor,
         "quadriceps": {"nodes": list(m.quadriceps.nodes), "start": [m.nodes[n].tolist() for n in m.quadriceps.nodes],
                        "law": quadriceps_law(m.load.quadriceps_n, m.quadriceps.length_mm)},
-        "fibres": [{"name": s.name, "bundle": s.bundle, "k": s.stiffness_n, "slack": s.slack_length_mm,
+        "fibres": [{"name": s.name, "bundle": s.bundle, "k": s.stiffness_n, "slack": s.slack_length_mm, "beyond": s.beyond_mm,
                     "nodes": list(s.nodes), "start": [m.nodes[s.nodes[0]].tolist(), m.nodes[s.nodes[1]].tolist()],
                     "femur_end": 0 if s.nodes[0] in femur_nodes else 1 if s.nodes[1] in femur_nodes else None}
                    for s in m.springs],

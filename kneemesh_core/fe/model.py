@@ -14,8 +14,10 @@ bone-side surface is then the articular layer's deep face), deformable cartilage
 
 **Contact.** Linear pressure-overclosure between articular surfaces: medial and lateral tibial
 on femoral, patellar on femoral.  The stiffness stands for the two cartilage layers it replaces,
-springs in series: K = E / (h_1 + h_2), E the cartilage's modulus and h the median thickness of
-each cartilage (N/mm^3).
+springs in series, each a thin elastic layer bonded to bone (the elastic foundation of Blankevoort
+et al. 1991 and Bei & Fregly 2004): K = M / (h_1 + h_2), M = (1 - nu) E / ((1 + nu)(1 - 2 nu)) the
+modulus of a layer that cannot bulge sideways, E and nu the cartilage's modulus and Poisson ratio
+and h the median thickness of each cartilage (N/mm^3).
 
 **Ligaments.** Each fibre of ``attachments.json`` is a tension-only nonlinear spring with the
 Blankevoort (1991) law as OpenSim implements it (strain e = L/L0 - 1; 0 for e <= 0,
@@ -55,6 +57,14 @@ from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES
 #: Cartilage modulus behind the contact stiffness, MPa (instantaneous compressive modulus of
 #: human knee cartilage is 5-15 MPa; the paper's rigid-cartilage models use linear laws of this kind).
 CARTILAGE_MODULUS_MPA = 10.0
+#: Cartilage Poisson ratio of the elastic-foundation contact law (0.45 in Blankevoort 1991 and Bei &
+#: Fregly 2004: nearly incompressible under a short load).  A thin layer that cannot bulge is 3.79 times
+#: stiffer than E / h; with E / h alone (used until 2026-11-30) the sample's femur sank 0.96 mm into
+#: 4.2 mm of cartilage to carry 1000 N and 4.7 mm by 30 deg of flexion, and the full flexion stopped at
+#: 45 deg; with this law it seats at 0.51 mm and flexes to 90 deg.
+CARTILAGE_POISSON = 0.45
+#: The layer's confined modulus, MPa.
+CONFINED_MODULUS_MPA = CARTILAGE_MODULUS_MPA * (1 - CARTILAGE_POISSON) / ((1 + CARTILAGE_POISSON) * (1 - 2 * CARTILAGE_POISSON))
 #: Blankevoort transition strain.
 TRANSITION_STRAIN = 0.06
 #: The contact pairs: name -> (slave cartilage, master cartilage).
@@ -78,9 +88,9 @@ AP_RESTRAINT_N_MM = 40.0
 PATELLA_ROTATION_NMM_RAD = 30000.0
 #: A seating deeper than this share of the tibiofemoral cartilage layers' combined thickness means
 #: the cartilages meet over too small an area to carry the joint load as cartilage: no cartilage
-#: is squeezed by three quarters.  The sample seats at 0.22 and OAI 9357383_00m at 0.29 (0.95 and
-#: 1.35 mm; the real maps 1.0-2.2 mm); a severity-3 phantom whose medial plate was meshed over 80 %
-#: of its label needed 4.1 mm, 1.28, and did not converge.
+#: is squeezed by three quarters.  The sample seats at 0.12 (0.51 mm).  Under the softer E / h law used
+#: before, the sample seated at 0.22 and OAI 9357383_00m at 0.29, and a severity-3 phantom whose medial
+#: plate was meshed over 80 % of its label needed 1.28 (4.1 mm) and did not converge.
 MAX_PRELOAD_STRAIN = 0.75
 #: Where the quadriceps pulls from: this far up the femoral shaft (deck Z), mm; and how much shorter
 #: than its initial length it goes slack (its force then stays nearly constant as it lengthens).
@@ -120,7 +130,8 @@ class Spring:
     nodes: tuple[int, int]
     stiffness_n: float
     slack_length_mm: float
-    length_mm: float  # in the deck's initial pose
+    length_mm: float  # in the deck's initial pose, with beyond_mm
+    beyond_mm: float = 0.0  # the fibre's path beyond its two nodes (constant; the ITB's to the pelvis)
 
 
 @dataclass
@@ -232,7 +243,7 @@ def build(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
                                elements[kept_layer == (top if load.cartilage == "rigid" else 0)], float(np.median(thick)))
         m.body_nodes[BONE_OF[tissue]].extend(ids.tolist())
     for name, (slave, master) in PAIRS.items():
-        m.contact_k[name] = round(CARTILAGE_MODULUS_MPA / (m.parts[slave].thickness_mm + m.parts[master].thickness_mm), 4)
+        m.contact_k[name] = round(CONFINED_MODULUS_MPA / (m.parts[slave].thickness_mm + m.parts[master].thickness_mm), 4)
     # reference nodes: femur and patella at their frames' origins, tibia at the tibial frame's
     for body in BONES:
         m.ref[body] = int(m.add_nodes(to_deck(np.asarray(att["frames"][body]["origin_mm"])[None]))[0])
@@ -246,9 +257,10 @@ def build(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
         a, b = (int(m.add_nodes(to_deck(np.asarray(e["lps_mm"])[None]))[0]) for e in ends)
         for e, n in zip(ends, (a, b)):
             m.body_nodes[e["bone"]].append(n)
-        length = float(np.linalg.norm(m.nodes[a] - m.nodes[b]))
+        beyond = float(fibre.get("path_beyond_mm", 0.0))
+        length = float(np.linalg.norm(m.nodes[a] - m.nodes[b])) + beyond
         m.springs.append(Spring(fibre["name"], fibre["bundle"], element, (a, b), fibre["stiffness_n"],
-                                fibre["slack_length_mm"], length))
+                                fibre["slack_length_mm"], length, beyond))
         element += 1
     # the quadriceps: from the patella's proximal pole to a point up the femoral shaft, on the femur
     patella = att["frames"]["patella"]
@@ -365,7 +377,7 @@ def seat(m: Model) -> dict:
     _move(m, "patella", patella_shift * toward)
     pf_before = pf  # measured after the femur was seated, along the patella's axis
     for s in m.springs:
-        s.length_mm = float(np.linalg.norm(m.nodes[s.nodes[0]] - m.nodes[s.nodes[1]]))
+        s.length_mm = float(np.linalg.norm(m.nodes[s.nodes[0]] - m.nodes[s.nodes[1]])) + s.beyond_mm
     q = m.quadriceps
     q.length_mm = float(np.linalg.norm(m.nodes[q.nodes[0]] - m.nodes[q.nodes[1]]))
 

@@ -120,7 +120,7 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
             for f in meta["fibres"]:
                 a, b = f["nodes"]
                 pa, pb = np.asarray(f["start"][0]) + u[a], np.asarray(f["start"][1]) + u[b]
-                force = fibre_force(f["k"], f["slack"], float(np.linalg.norm(pa - pb)))
+                force = fibre_force(f["k"], f["slack"], float(np.linalg.norm(pa - pb)) + f.get("beyond", 0.0))
                 bundles[f["bundle"]] += force
                 if f["femur_end"] is not None and force > 0:  # pulls the femur towards the other end
                     fe, other = (pa, pb) if f["femur_end"] == 0 else (pb, pa)
@@ -163,7 +163,8 @@ def first_invalid(increments: list[dict]) -> str | None:
         tf = tibiofemoral_n(r)
         if r["balance_error"] > MAX_BALANCE_ERROR or tf <= 0:
             return (f"at {r['flexion_deg']:.1f} deg of flexion the femur's forces no longer balance the joint load "
-                    f"(error {r['balance_error']:.0%}, tibiofemoral contact {tf:.0f} N): it lost the tibia")
+                    f"(error {r['balance_error']:.1%}, tibiofemoral contact {tf:.0f} N)"
+                    + (": it lost the tibia" if tf <= 0 else ""))
     return None
 
 
