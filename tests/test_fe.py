@@ -141,6 +141,28 @@ def test_the_itb_strains_as_the_whole_band_not_as_its_segment_over_the_knee():
     assert np.interp(10.0, elongation, force) < 30
 
 
+def test_a_fibre_in_the_deck_pulls_as_the_results_law_says_far_along_its_law(tmp_path):
+    """ccx holds a nonlinear spring's force constant past its table: a fibre stretched to 40 % strain
+    (a PCL 10 % short of slack in the image pose, pulled to 40 % past it) must still pull k (e - e_t / 2),
+    or the femur's forces cannot balance in deep flexion."""
+    from kneemesh_core.fe.model import blankevoort
+    from kneemesh_core.fe.results import fibre_force
+
+    k, slack, length = 3000.0, 40.0, 36.0
+    stretch = 1.4 * slack - length  # half of it by the first increment: 15 % strain
+    w = ["*HEADING", "one fibre", "*NODE, NSET=ENDS", "1, 0, 0, 0", f"2, {length}, 0, 0",
+         "*ELEMENT, TYPE=SPRINGA, ELSET=FIBRE", "1, 1, 2", "*SPRING, ELSET=FIBRE, NONLINEAR", ""]
+    w += [f"{f:.6e}, {d:.6e}" for f, d in blankevoort(k, slack, length)]
+    w += ["*BOUNDARY", "1, 1, 3", "2, 2, 3", "*STEP, NLGEOM", "*STATIC", "0.5, 1.0", "*BOUNDARY",
+          f"2, 1, 1, {stretch}", "*NODE PRINT, NSET=ENDS", "RF", "*END STEP"]
+    (tmp_path / "fibre.inp").write_text("\n".join(w) + "\n")
+    assert run_ccx(tmp_path, "fibre", timeout_s=60).completed
+    reactions = parse_dat(tmp_path / "fibre.dat")["nodes"][("forces", "ENDS")]
+    for t in (0.5, 1.0):
+        assert reactions[t][2][0] == pytest.approx(fibre_force(k, slack, length + t * stretch), rel=1e-3)
+    assert reactions[1.0][2][0] == pytest.approx(k * (0.4 - 0.03), rel=1e-3)
+
+
 def test_a_missing_ccx_and_a_skipped_card_are_clear_errors(tmp_path, monkeypatch):
     (tmp_path / "bad.inp").write_text("*HEADING\nx\n*PART, NAME=P\n*NODE\n1, 0, 0, 0\n*STEP\n*STATIC\n*END STEP\n")
     with pytest.raises(KneeMeshError) as e:

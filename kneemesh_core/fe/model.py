@@ -178,14 +178,16 @@ def deck_frame(attachments: dict) -> tuple[np.ndarray, np.ndarray]:
 
 def blankevoort(k: float, slack: float, length: float, points: int = 48) -> list[tuple[float, float]]:
     """(force N, elongation mm) pairs of a fibre of stiffness ``k`` (N per unit strain), slack length
-    ``slack`` and initial length ``length`` (mm), elongation measured from the initial length."""
-    elong = np.unique(np.concatenate([np.linspace(-0.5 * length, -0.02 * length, 6),
-                                      np.linspace(-0.02 * length, 0.35 * length, points)]))
-    strain = (length + elong) / slack - 1.0
+    ``slack`` and initial length ``length`` (mm), elongation measured from the initial length.
+
+    ccx holds a nonlinear spring's force constant beyond its table (a fibre past the last pair pulls
+    no harder however far it stretches), so the table runs to a strain of 2 - twice any fibre's
+    rupture - with ``points`` pairs in the quadratic toe and the exact straight lines either side."""
     et = TRANSITION_STRAIN
+    strain = np.concatenate([[-0.9], np.linspace(0.0, et, points), [2.0]])
     force = np.where(strain <= 0, 1e-3 * k * strain,
                      np.where(strain < et, k * strain ** 2 / (2 * et), k * (strain - et / 2)))
-    return [(float(f), float(d)) for f, d in zip(force, elong)]
+    return [(float(f), float(slack * (1.0 + e) - length)) for f, e in zip(force, strain)]
 
 
 def quadriceps_law(force_n: float, length_mm: float) -> list[tuple[float, float]]:
