@@ -44,7 +44,7 @@ demo: $(STAMP) ccx
 	@echo "Outputs are in $(abspath $(DEMO_OUT)): meshes/, attachments.json/.png, fe/ (decks; smoke/ results.json, contact.png), report.json."
 
 test: $(STAMP) ccx browser
-	$(PY) -m pytest -n 2 --dist loadgroup -q
+	$(PY) -m pytest -n 2 --dist loadgroup -q --durations=12
 
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e ".[test,bench]"

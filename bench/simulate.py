@@ -4,9 +4,9 @@
 
 Default maps: the real label maps in ../shared/data/real (pymskt and oai_labels).  Each knee is meshed
 as the job does (bones, cartilage, anatomy, decks), then simulated: smoke on every knee, full flexion on
-the first N (listed).  Prints completion, time, the reason of each failure, the contact figures at the
-end of the run, the femur's force balance and the plates' peak pressure over the run; one knee at a time
-(ccx on ``--threads``).
+the first N (listed).  Prints completion and physiology (:func:`kneemesh_core.fe.results.physiology`),
+time, the reason of each failure or miss, the contact figures at the end of the run, the femur's force
+balance and the plates' peak pressure over the run; one knee at a time (ccx on ``--threads``).
 """
 
 from __future__ import annotations
@@ -49,7 +49,8 @@ def one(path: str, element_size: float, full: bool, timeout: float) -> dict:
             last = r["increments"][-1] if r["increments"] else {}
             peak = max((i[side]["peak_pressure_mpa"] for i in r["increments"] for side in ("medial", "lateral")), default=0.0)
             out[kind] = {"completed": r["completed"], "reason": r["reason"], "seconds": r["seconds"],
-                         "reached": r["reached_flexion_deg"], "last": last, "plate_peak_mpa": peak}
+                         "reached": r["reached_flexion_deg"], "last": last, "plate_peak_mpa": peak,
+                         "physiology_reasons": r["physiology_reasons"]}
         return out
 
 
@@ -79,7 +80,7 @@ def main() -> None:
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1, default=float))
     table = Table(title=f"CalculiX runs of {len(rows)} knees (element size {args.element_size} mm)")
-    for col in ("run", "completed", "seconds: median (max)", "medial N / mm^2 / peak MPa", "lateral", "balance error max",
+    for col in ("run", "completed", "completed, physiological", "seconds: median (max)", "medial N / mm^2 / peak MPa", "lateral", "balance error max",
                 "plates' peak MPa over the run: median (max)"):
         table.add_column(col)
     for kind in ("smoke", "full"):
@@ -96,7 +97,7 @@ def main() -> None:
                           for x in done])
             return " / ".join(f"{q:.0f}" if j < 2 else f"{q:.1f}" for j, q in enumerate(np.median(v, 0)))
 
-        table.add_row(kind, f"{len(done)}/{len(rs)}", f"{np.median(secs):.0f} ({secs.max():.0f})", fig("medial"), fig("lateral"),
+        table.add_row(kind, f"{len(done)}/{len(rs)}", f"{sum(not x['physiology_reasons'] for x in done)}/{len(rs)}", f"{np.median(secs):.0f} ({secs.max():.0f})", fig("medial"), fig("lateral"),
                       f"{max((x['last']['balance_error'] for x in done), default=float('nan')):.4f}",
                       f"{np.median([x['plate_peak_mpa'] for x in done]):.1f} ({max(x['plate_peak_mpa'] for x in done):.1f})"
                       if done else "-")
@@ -105,6 +106,8 @@ def main() -> None:
         for kind in ("smoke", "full"):
             if kind in r and not r[kind]["completed"]:
                 console.print(f"{r['knee']} {kind}: {r[kind]['reason']}", highlight=False)
+            elif kind in r and r[kind]["physiology_reasons"]:
+                console.print(f"{r['knee']} {kind}: completed, but " + "; ".join(r[kind]["physiology_reasons"]), highlight=False)
 
 
 if __name__ == "__main__":

@@ -211,6 +211,9 @@ def _print_simulation(sim: dict) -> None:
         line += "; " + ", ".join(f"{k} {final[k]['force_n']:.0f} N on {final[k]['area_mm2']:.0f} mm^2, peak "
                                  f"{final[k]['peak_pressure_mpa']:.1f} MPa" for k in CONTACTS if k in final)
     out.print(line, highlight=False)
+    if sim["completed"]:  # a stopped run's reason is on the line already
+        for reason in sim.get("reasons", []):
+            out.print(f"  [yellow]review[/]: {reason}", highlight=False)
 
 
 @app.command("run")
@@ -245,7 +248,7 @@ def simulate(
     last = r["increments"][-1] if r["increments"] else {}
     _print_simulation({"kind": "smoke" if smoke else "flexion", "solver": r["solver"], "solver_seconds": r["seconds"],
                        "completed": r["completed"], "reason": r["reason"], "reached_flexion_deg": r["reached_flexion_deg"],
-                       "target_flexion_deg": r["target_flexion_deg"], "final": last})
+                       "target_flexion_deg": r["target_flexion_deg"], "final": last, "reasons": r["physiology_reasons"]})
     if not r["completed"]:
         raise typer.Exit(1)
 

@@ -243,6 +243,7 @@ def test_smoke_simulation_of_a_real_knee_balances_with_physiological_contact(kne
     for inc in loaded:  # near extension the plates carry most of the load, the meniscus rings the rest
         rings = inc["medial_meniscus"]["force_n"] + inc["lateral_meniscus"]["force_n"]
         assert rings < 0.4 * (rings + inc["medial"]["force_n"] + inc["lateral"]["force_n"]), inc
+    assert r["physiological"] and report["simulation"]["status"] == "ok", r["physiology_reasons"]
     assert report["fe"]["seating"]["femur_shift_mm"] == pytest.approx(r["seating"]["femur_shift_mm"])
 
 
@@ -260,6 +261,26 @@ def test_a_run_whose_femur_loses_the_tibia_is_not_completed():
     assert reason and "72.0 deg" in reason and "lost the tibia" in reason
     reason = first_invalid(good + [inc(2.0, 90.0, 2013.0, 0.051)])  # contact kept, forces off by 5.1 %
     assert reason and "5.1%" in reason and "lost the tibia" not in reason
+
+
+def test_a_completed_run_outside_physiology_is_named_so():
+    """Converged is not physiological: a plate's peak above 20 MPa anywhere in the run, a plate that
+    carries almost nothing in extension, a pin-point contact: each is a reason of its own."""
+    from kneemesh_core.fe.results import physiology
+
+    def inc(t, flex, medial, lateral):
+        return {"time": t, "flexion_deg": flex, **{k: {"force_n": f, "area_mm2": a, "peak_pressure_mpa": p}
+                                                  for k, (f, a, p) in (("medial", medial), ("lateral", lateral))}}
+
+    seating = inc(0.5, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # not loaded yet: never judged
+    good = [seating, inc(1.0, 0.0, (560.0, 330.0, 6.0), (480.0, 210.0, 9.0)), inc(1.5, 45.0, (600.0, 250.0, 19.0), (450.0, 150.0, 12.0))]
+    assert physiology(good, 1000.0) == []
+    peaky = good + [inc(2.0, 90.0, (700.0, 60.0, 41.5), (400.0, 120.0, 12.0))]
+    assert physiology(peaky, 1000.0) == ["the tibial plates' peak contact pressure reaches 41.5 MPa (medial, at 90 deg; "
+                                         "physiological: below 20 MPa)"]
+    one_plate = [seating, inc(1.0, 0.0, (1010.0, 60.0, 18.0), (30.0, 5.0, 6.0))]
+    reasons = physiology(one_plate, 1000.0)
+    assert len(reasons) == 2 and "lateral plate carries 30 N" in reasons[0] and "65 mm^2" in reasons[1]
 
 
 def _disk(radius: float, centre, spacing: float = 1.0):

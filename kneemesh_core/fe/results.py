@@ -168,10 +168,44 @@ def first_invalid(increments: list[dict]) -> str | None:
     return None
 
 
+#: A completed run is physiology only within these (the targets of a knee under the 1000 N joint
+#: load: cadaver and model studies put tibiofemoral peaks at a few to 15-20 MPa over hundreds of
+#: mm^2, both compartments loaded in extension).  Tibial plates only: the meniscus surrogates are
+#: rigid rings whose edge concentrates pressure by construction.  The plates' peak over the run ...
+MAX_PLATE_PEAK_MPA = 20.0
+#: ... each plate's share of the joint load in extension (the end of seating) ...
+MIN_PLATE_SHARE = 0.1
+#: ... and the plates' contact area in extension, mm^2.
+MIN_PLATES_AREA_MM2 = 100.0
+
+
+def physiology(increments: list[dict], load_n: float) -> list[str]:
+    """Where a run's loaded increments (``time`` >= 1) leave physiology, one reason each; empty when
+    within every target."""
+    loaded = [r for r in increments if r["time"] >= 1.0]
+    if not loaded:
+        return []
+    out = []
+    peak, side, at = max((r[k]["peak_pressure_mpa"], k, r["flexion_deg"] or 0.0) for r in loaded for k in ("medial", "lateral"))
+    if peak > MAX_PLATE_PEAK_MPA:
+        out.append(f"the tibial plates' peak contact pressure reaches {peak:.1f} MPa ({side}, at {at:.0f} deg; "
+                   f"physiological: below {MAX_PLATE_PEAK_MPA:g} MPa)")
+    first = loaded[0]
+    for k in ("medial", "lateral"):
+        if first[k]["force_n"] < MIN_PLATE_SHARE * load_n:
+            out.append(f"in extension the {k} plate carries {first[k]['force_n']:.0f} N of the {load_n:g} N joint load "
+                       f"(physiological: at least {MIN_PLATE_SHARE:.0%})")
+    area = first["medial"]["area_mm2"] + first["lateral"]["area_mm2"]
+    if area < MIN_PLATES_AREA_MM2:
+        out.append(f"in extension the plates touch over {area:.0f} mm^2 (physiological: at least {MIN_PLATES_AREA_MM2:g} mm^2)")
+    return out
+
+
 def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
     """``results.json`` (and ``contact.png``) in ``folder`` from a run and its .dat file.  ``completed``
     needs ccx to finish and every loaded increment to be physics (:func:`first_invalid`);
-    ``reached_flexion_deg`` is the last trusted increment's flexion."""
+    ``reached_flexion_deg`` is the last trusted increment's flexion; ``physiological`` whether the
+    trusted increments meet the targets of :func:`physiology` (``physiology_reasons`` when not)."""
     increments = summarise(parse_dat(dat_path, stopped=not run.completed), meta) if dat_path.exists() else []
     invalid = first_invalid(increments)
     trusted = [r for r in increments if r["time"] < 1.0 or (r["balance_error"] <= MAX_BALANCE_ERROR
@@ -188,7 +222,9 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
                   f"({seat['preload_strain']:.0%} of the tibiofemoral layers' thickness) before they carried the joint load: "
                   "they meet over a small area, where bone would touch bone through denuded or unmeshed cartilage, "
                   "which the model leaves out")
+    off_physiology = physiology(trusted, meta["joint_load_n"])
     result = {"solver": run.version, "completed": completed, "reason": reason, "seconds": round(run.seconds, 2),
+              "physiological": not off_physiology, "physiology_reasons": off_physiology,
               "applied_load_n": meta["joint_load_n"], "quadriceps_n": meta["quadriceps_n"],
               "target_flexion_deg": meta["flexion_deg"], "reached_flexion_deg": round(reached, 3),
               "contact_stiffness_n_mm3": meta["contact_k"], "seating": meta["seating"], "increments": increments}

@@ -232,11 +232,13 @@ def run_simulation(out_dir: str | os.PathLike, options: dict) -> dict:
     def work() -> dict:
         r = simulate(Path(out_dir), smoke=opts.simulate == "smoke", load=LoadCase(cartilage=opts.fe_cartilage))
         last = r["increments"][-1] if r["increments"] else {}
-        # stopped part-way: the increments it reached are results (review); none reached: failed
-        status = "ok" if r["completed"] else "review" if r["reached_flexion_deg"] > 0 else "failed"
-        reasons = [] if r["completed"] else [f"stopped at {r['reached_flexion_deg']:g} of {r['target_flexion_deg']:g} deg: "
-                                             f"{r['reason']}"]
+        # stopped part-way: the increments it reached are results (review); none reached: failed;
+        # completed outside physiology (a peak above 20 MPa, a plate unloaded): review
+        reasons = ([] if r["completed"] else [f"stopped at {r['reached_flexion_deg']:g} of {r['target_flexion_deg']:g} deg: "
+                                              f"{r['reason']}"]) + r["physiology_reasons"]
+        status = "failed" if not r["completed"] and r["reached_flexion_deg"] <= 0 else "review" if reasons else "ok"
         return {"status": status, "reasons": reasons, "kind": opts.simulate, "completed": r["completed"],
+                "physiological": r["physiological"],
                 "reason": r["reason"], "solver": r["solver"], "solver_seconds": r["seconds"],
                 "reached_flexion_deg": r["reached_flexion_deg"], "target_flexion_deg": r["target_flexion_deg"],
                 "final": {k: v for k, v in last.items() if k in ("balance_error", *CONTACTS)},
