@@ -4,6 +4,7 @@ simulation of a real knee whose forces balance and whose pressures are physiolog
 from __future__ import annotations
 
 import json
+import os
 import re
 
 import numpy as np
@@ -164,7 +165,11 @@ def test_a_fibre_in_the_deck_pulls_as_the_results_law_says_far_along_its_law(tmp
 
 
 def test_a_missing_ccx_and_a_skipped_card_are_clear_errors(tmp_path, monkeypatch):
-    (tmp_path / "bad.inp").write_text("*HEADING\nx\n*PART, NAME=P\n*NODE\n1, 0, 0, 0\n*STEP\n*STATIC\n*END STEP\n")
+    # a spring stretched by 1 mm, run to its end, behind a card ccx skips (a deck without elements made ccx
+    # 2.20 crash before its warning, depending on the memory layout)
+    (tmp_path / "bad.inp").write_text("*HEADING\nx\n*PART, NAME=P\n*NODE\n1, 0, 0, 0\n2, 10, 0, 0\n*ELEMENT, TYPE=SPRINGA, "
+                                      "ELSET=E1\n1, 1, 2\n*SPRING, ELSET=E1\n\n5.0\n*BOUNDARY\n1, 1, 3\n2, 2, 3\n*STEP\n*STATIC\n"
+                                      "*BOUNDARY\n2, 1, 1, 1.0\n*END STEP\n")
     with pytest.raises(KneeMeshError) as e:
         run_ccx(tmp_path, "bad", timeout_s=60)
     assert e.value.code == "deck_skipped" and "skipped part of the deck" in e.value.message
@@ -172,6 +177,21 @@ def test_a_missing_ccx_and_a_skipped_card_are_clear_errors(tmp_path, monkeypatch
     with pytest.raises(KneeMeshError) as e:
         run_ccx(tmp_path, "bad")
     assert e.value.code == "ccx_missing" and "apt-get install calculix-ccx" in e.value.message
+
+
+def test_a_stalled_run_is_stopped_with_its_reason(tmp_path, monkeypatch):
+    """A run whose increments stop converging (ccx cutting back for ever, as on a chattering contact)
+    is stopped once no increment has converged for the stall time, not at the time limit."""
+    fake = tmp_path / "bin" / "ccx"  # a ccx that converges one increment, then only cuts back
+    fake.parent.mkdir()
+    fake.write_text("#!/bin/sh\n[ \"$1\" = -v ] && echo 'Version 2.20' && exit 0\nprintf ' STEP INC ATT ITRS TOT TIME STEP TIME INC TIME\\n 1 1 1 8 0.1E+01 0.1E+01 0.1E+01\\n' > knee_ccx.sta\n"
+                    "while true; do echo ' 2 1 1U 30 0.13E+01 0.33E+00 0.33E+00' >> knee_ccx.sta; sleep 0.2; done\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{fake.parent}:{os.environ['PATH']}")
+    (tmp_path / "knee_ccx.sta").write_text(" 1 1 1 8 0.5E+01 0.5E+01 0.5E+01\n")  # an earlier run's: not progress
+    run = run_ccx(tmp_path, "knee_ccx", timeout_s=60, stall_s=3)
+    assert not run.completed and run.reason.startswith("stalled: no increment converged in 3 s after step time 1")
+    assert run.seconds < 10
 
 
 @pytest.fixture(scope="module")
