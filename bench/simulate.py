@@ -30,6 +30,7 @@ console = make_console()
 
 def one(path: str, element_size: float, full: bool, timeout: float) -> dict:
     warnings.filterwarnings("ignore")
+    from kneemesh_core.fe.results import plates_peak
     from kneemesh_core.fe.run import simulate
     from kneemesh_core.job import JobRequest, run
 
@@ -47,7 +48,7 @@ def one(path: str, element_size: float, full: bool, timeout: float) -> dict:
                 out[kind] = {"completed": False, "reason": f"{type(exc).__name__}: {exc}", "seconds": 0.0}
                 continue
             last = r["increments"][-1] if r["increments"] else {}
-            peak = max((i[side]["peak_pressure_mpa"] for i in r["increments"] for side in ("medial", "lateral")), default=0.0)
+            peak = plates_peak(r["increments"])[0]
             out[kind] = {"completed": r["completed"], "reason": r["reason"], "seconds": r["seconds"],
                          "reached": r["reached_flexion_deg"], "last": last, "plate_peak_mpa": peak,
                          "physiology_reasons": r["physiology_reasons"]}

@@ -81,6 +81,7 @@ def place(bones: dict[str, pv.PolyData], side: str, plates: tuple[np.ndarray, np
 
     trees = {b: cKDTree(p) for b, p in pts.items()}
     fibres, unplaced = [], []
+    femur_scale = regs["femur"].similarity.scale if "femur" in regs else 1.0  # hip to knee scales with the femur
     for fibre in template.fibres:
         ends = []
         for end in fibre.ends:
@@ -98,8 +99,7 @@ def place(bones: dict[str, pv.PolyData], side: str, plates: tuple[np.ndarray, np
                              snapped_mm=round(float(np.linalg.norm(closest[0] - mapped)), 3))
             ends.append(entry)
         strain = fibre.reference_strain
-        scale = regs["femur"].similarity.scale if "femur" in regs else 1.0
-        beyond = fibre.path_beyond_mm * scale  # hip to knee scales with the femur
+        beyond = fibre.path_beyond_mm * femur_scale
         item = {"name": fibre.name, "bundle": fibre.bundle, "stiffness_n": fibre.stiffness_n,
                 "template_slack_length_mm": fibre.slack_length_mm, "reference_strain": round(strain, 4), "ends": ends}
         if all(e["lps_mm"] is not None for e in ends):

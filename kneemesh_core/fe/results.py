@@ -179,6 +179,13 @@ MIN_PLATE_SHARE = 0.1
 MIN_PLATES_AREA_MM2 = 100.0
 
 
+def plates_peak(increments: list[dict]) -> tuple[float, str, float]:
+    """The tibial plates' peak contact pressure over a run's loaded increments (``time`` >= 1): (MPa,
+    plate, flexion deg); (0, "", 0) before the joint load is on."""
+    return max(((r[k]["peak_pressure_mpa"], k, r["flexion_deg"] or 0.0) for r in increments if r["time"] >= 1.0
+                for k in ("medial", "lateral")), default=(0.0, "", 0.0))
+
+
 def physiology(increments: list[dict], load_n: float) -> list[str]:
     """Where a run's loaded increments (``time`` >= 1) leave physiology, one reason each; empty when
     within every target."""
@@ -186,7 +193,7 @@ def physiology(increments: list[dict], load_n: float) -> list[str]:
     if not loaded:
         return []
     out = []
-    peak, side, at = max((r[k]["peak_pressure_mpa"], k, r["flexion_deg"] or 0.0) for r in loaded for k in ("medial", "lateral"))
+    peak, side, at = plates_peak(loaded)
     if peak > MAX_PLATE_PEAK_MPA:
         out.append(f"the tibial plates' peak contact pressure reaches {peak:.1f} MPa ({side}, at {at:.0f} deg; "
                    f"physiological: below {MAX_PLATE_PEAK_MPA:g} MPa)")
