@@ -54,3 +54,23 @@ def ray_distances(origins: np.ndarray, direction: np.ndarray, points: np.ndarray
     out = np.full(len(origins), np.nan)
     out[index] = (loc - origins[index]) @ direction
     return out
+
+
+def grid_quads(ni: int, nj: int) -> np.ndarray:
+    """The quads (E, 4) of a structured ``ni`` x ``nj`` grid of points numbered row by row, cell
+    (i, j) at row ``i * (nj - 1) + j``."""
+    idx = np.arange(ni * nj).reshape(ni, nj)
+    return np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], axis=-1).reshape(-1, 4)
+
+
+def hex_sheet(upper: np.ndarray, quads: np.ndarray, outward: np.ndarray, depth_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """One layer of hexahedra under a quad surface: ``upper`` (N, 3) mm, ``quads`` (E, 4) indexing it,
+    the layer ``depth_mm`` deep against unit ``outward`` (3,), the side the surface faces.  Returns the
+    nodes (M, 3) that the hexahedra use and the hexahedra (E, 8) in C3D8 order: nodes 1-4 on the deep
+    side, 5-8 on the surface (face S2), each quad turned so that its normal points ``outward``."""
+    p = upper[quads]
+    normal = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+    quads = np.where((normal @ outward < 0)[:, None], quads[:, ::-1], quads)
+    nodes = np.concatenate([upper - depth_mm * np.asarray(outward, float), upper])
+    used, hexes = np.unique(np.concatenate([quads, quads + len(upper)], axis=1), return_inverse=True)
+    return nodes[used], hexes.reshape(-1, 8)

@@ -243,6 +243,13 @@ def test_decks_are_clean_in_both_dialects(knee):
     # the meniscus rings: in the tibia's body, in contact with the femoral cartilage in both dialects
     for side in ("MEDIAL", "LATERAL"):
         assert f"{side}_MENISCUS_ARTICULAR, FEMORAL_CARTILAGE_ARTICULAR" in ccx and f"{side}_MENISCUS_ARTICULAR" in abq
+    # the prefemoral sheet: in the femur's body, the patellar cartilage its contact in both dialects
+    assert "PREFEMORAL_ARTICULAR, PATELLAR_CARTILAGE_ARTICULAR" in ccx and "PREFEMORAL_ARTICULAR, PATELLAR_CARTILAGE_ARTICULAR" in abq
+    assert re.search(r"^\*ELSET, ELSET=FEMUR_RIGID\n.*\bPREFEMORAL\b", abq, re.M)
+    rows = shared.split("*ELEMENT, TYPE=C3D8, ELSET=PREFEMORAL\n")[1].split("\n*")[0].splitlines()
+    femur_body = shared.split("*NSET, NSET=FEMUR_BODY\n")[1].split("\n*")[0]
+    assert len(rows) > 100
+    assert {int(n) for r in rows for n in r.split(",")[1:]} <= {int(n) for n in femur_body.replace("\n", ",").split(",")}
     # the same model data under both: the Abaqus wrapper adds bones and bodies, not new cartilage
     assert _cards(shared).count("*ELEMENT") >= 6 and "C3D8" in shared
 
@@ -346,3 +353,31 @@ def test_a_meniscus_surrogate_rings_its_plate_below_the_femur_and_leaves_the_emi
     assert np.all(jac > 0)
     n = np.cross(c[:, 5] - c[:, 4], c[:, 7] - c[:, 4])
     assert np.all(n[:, 2] > 0)
+
+
+def test_the_prefemoral_sheet_continues_the_trochlea_up_the_femur_from_the_cartilage_edge():
+    """A flat anterior femur (y = 0, facing +y), its cartilage over z < 0 and a patella in front
+    reaching above it: the sheet covers the bone above the cartilage only, rises from the bone at the
+    cartilage's edge to the standoff over the taper, and faces the patella."""
+    from kneemesh_core.fe import prefemoral
+
+    def plane(x, z, y):  # a triangulated rectangle at height y, facing +y
+        from scipy.spatial import Delaunay
+        xz = np.stack(np.meshgrid(np.arange(*x, 0.5), np.arange(*z, 0.5)), -1).reshape(-1, 2)
+        return np.column_stack([xz[:, 0], np.full(len(xz), y), xz[:, 1]]), Delaunay(xz).simplices
+
+    bone = plane((-30, 30.1), (-30, 60.1), 0.0)
+    cartilage = plane((-30, 30.1), (-30, 0.01), 2.0)
+    patella = plane((-10, 10.1), (-5, 25.1), 6.0)[0]
+    standoff = 2.5
+    nodes, hexes = prefemoral.sheet(patella, np.array([0.0, -1.0, 0.0]), bone, cartilage, standoff)
+    top = nodes[np.unique(hexes[:, 4:])]
+    assert len(hexes) > 400
+    assert top[:, 2].min() >= -1.0 and top[:, 2].max() <= 25 + prefemoral.MARGIN_MM + 1.0  # above the cartilage, under the patella
+    assert np.abs(top[:, 0]).max() <= 10 + prefemoral.MARGIN_MM + 1.0
+    expected = standoff * np.clip(top[:, 2] / prefemoral.TAPER_MM, 0.0, 1.0)  # the edge at z = 0
+    assert np.allclose(top[:, 1], expected, atol=0.5 * standoff * prefemoral.SPACING_MM / prefemoral.TAPER_MM + 1e-6)
+    assert np.allclose(top[top[:, 2] > prefemoral.TAPER_MM + 1, 1], standoff)
+    c = nodes[hexes]  # positive volumes, the contact face (nodes 5-8) towards the patella (+y)
+    jac = np.einsum("ij,ij->i", np.cross(c[:, 1] - c[:, 0], c[:, 3] - c[:, 0]), c[:, 4] - c[:, 0])
+    assert np.all(jac > 0) and np.all(c[:, 4:, 1].mean(1) > c[:, :4, 1].mean(1))

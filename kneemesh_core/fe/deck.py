@@ -115,7 +115,8 @@ def shared(m: Model) -> str:
         k = m.contact_k[name]
         why = (f"K = M / (h_{slave} + h_{master}) = {CONFINED_MODULUS_MPA:.2f} MPa / ({m.parts[slave].thickness_mm:.3f} + "
                f"{m.parts[master].thickness_mm:.3f} mm)" if name in PAIRS
-               else "meniscus surrogate (rigid, with the tibia): K of its compartment")
+               else "the prefemoral sheet (rigid, with the femur; fe/prefemoral.py): K of the patellofemoral pair"
+               if name == "prefemoral" else "meniscus surrogate (rigid, with the tibia): K of its compartment")
         w += [f"** {name}: {why} = {k:.4f} N/mm^3",
               f"*SURFACE INTERACTION, NAME=CONTACT_{name.upper()}", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", f"{k:.6f}"]
     w += ["*AMPLITUDE, NAME=RAMP", "0.0, 0.0, 1.0, 1.0", "*AMPLITUDE, NAME=HOLD", "0.0, 1.0, 1.0, 1.0"]
@@ -241,6 +242,7 @@ def meta(m: Model, flexion_deg: float) -> dict:
         "joint_load_direction": (-m.tibial_axis).round(6).tolist(), "quadriceps_n": m.load.quadriceps_n,
         "flexion_deg": flexion_deg, "cartilage": m.load.cartilage, "contact_k": m.contact_k, "seating": m.seating,
         "pairs": {name: f"{slave.upper()}_ARTICULAR" for name, (slave, _) in m.pairs.items()},
+        "slave_body": {name: m.parts[slave].body for name, (slave, _) in m.pairs.items()},
         "slave_elements": {name: [int(m.parts[slave].elements[0]), int(m.parts[slave].elements[-1])]
                            for name, (slave, _) in m.pairs.items()},
         "ref": {b: m.ref[b] for b in BONES}, "rot": rot_nodes(m),

@@ -19,7 +19,8 @@ under the ring changes with flexion.)  The surface is shaped to the
 knee's own condyles, so it fits knees of every size without a template.
 
 The ring's grid is built here on arrays (no meshing library makes a swept ring of a height
-field); the heights come from Embree ray casts (trimesh).
+field; :func:`kneemesh_core.geometry.hex_sheet` gives it its layer); the heights come from Embree ray
+casts (trimesh).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
-from kneemesh_core.geometry import ray_distances
+from kneemesh_core.geometry import grid_quads, hex_sheet, ray_distances
 
 #: How far the wedge reaches over the plate from its rim, and beyond the rim, mm (a meniscus
 #: covers the outer third or so of a plate; its body is 8-12 mm wide).
@@ -130,18 +131,11 @@ def wedge(plate: tuple[np.ndarray, np.ndarray], femoral: list[tuple[np.ndarray, 
     gap = np.where(np.isfinite(gaps).any(0), np.min(np.nan_to_num(gaps, nan=np.inf), axis=0), np.nan) - below
     rise = HEIGHT_MM * np.clip((stations + INNER_MM) / INNER_MM, 0.0, 1.0)
     top = base + np.minimum(np.nan_to_num(gap, nan=np.inf) - CLEARANCE_MM, np.tile(rise, len(run)))
-    upper = flat + top[:, None] * axis
-    nodes = np.concatenate([upper - LAYER_MM * axis, upper])  # the layer below, then the surface
-    ni, nj = q.shape[:2]
-    idx = np.arange(ni * nj).reshape(ni, nj)
-    quad = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], axis=-1).reshape(-1, 4)
+    quad = grid_quads(*q.shape[:2])
     corners = q.reshape(-1, 2)[quad]  # (E, 4, 2)
     area = 0.5 * np.sum(corners[:, :, 0] * np.roll(corners[:, :, 1], -1, axis=1)
                         - np.roll(corners[:, :, 0], -1, axis=1) * corners[:, :, 1], axis=1)
     a, b = np.roll(corners, -1, axis=1) - corners, np.roll(corners, -2, axis=1) - np.roll(corners, -1, axis=1)
     convex = np.all((a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]) * np.sign(np.median(area)) > 0, axis=1)
     quad = quad[convex]  # where a concave rim makes the stations cross, the ring leaves a gap
-    if np.median(area) < 0:  # nodes 1-4 counter-clockwise seen from above
-        quad = quad[:, ::-1]
-    used, hexes = np.unique(np.concatenate([quad, quad + ni * nj], axis=1), return_inverse=True)
-    return nodes[used], hexes.reshape(-1, 8)
+    return hex_sheet(flat + top[:, None] * axis, quad, axis, LAYER_MM)

@@ -28,7 +28,7 @@ so that a slack fibre leaves no singular tangent.
 real OA knees); :func:`seat` moves the femur down the tibial axis until its cartilage just touches the tibial
 cartilage, then on by the depth at which the contact law carries the joint load (the solver starts
 next to equilibrium, not from a touch that carries nothing), and the patella along its anterior
-axis until it just touches the femoral cartilage; it reports the overlaps it removed.
+axis until it just touches the femur's cartilage or prefemoral sheet; it reports the overlaps it removed.
 
 **Loads.** The tibia fixed; a compressive joint load on the femur down the tibial axis; a
 quadriceps force on the patella from a point up the femoral shaft that belongs to the femur (the
@@ -36,6 +36,12 @@ muscle's pull on its origin is the femur's: the quadriceps is internal to the th
 patella into the trochlea without pushing the femur off the tibia); weak springs on the free degrees
 of freedom keep the solve regular before contact closes: the femur's to the ground, the patella's to
 the femur, which it follows through flexion (their forces are part of the equilibrium check).
+
+**The patella above the trochlea.** In extension the patella rests partly on the anterior femur above
+its trochlear cartilage (the prefemoral fat pad); a rigid sheet there, with the femur, carries it
+(:mod:`kneemesh_core.fe.prefemoral`), on by default: without it the patella of OAI 9357383_00m rocked on
+its distal tip on the cartilage's edge and ccx never converged past 6.6 deg.  The patella is seated
+against the cartilage and the sheet, whichever it meets first.
 
 **Menisci.** Optional rigid surrogates on the plates' rims (:mod:`kneemesh_core.fe.menisci`), on by
 default: without them the lateral condyle leaves the convex lateral plate in flexion.
@@ -107,6 +113,7 @@ class LoadCase:
     max_increment_deg: float = 3.0
     cartilage: str = "rigid"  # or "deformable" (Abaqus deck)
     menisci: bool = True  # the meniscus surrogates (fe/menisci.py)
+    prefemoral: bool = True  # the patella's rest above the trochlea (fe/prefemoral.py)
 
 
 @dataclass
@@ -316,6 +323,27 @@ def add_menisci(m: Model, flexion_deg: float) -> None:
         m.contact_k[name] = m.contact_k[side]
 
 
+def add_prefemoral(m: Model) -> None:
+    """The prefemoral sheet (:mod:`kneemesh_core.fe.prefemoral`) of the seated femur: rigid with the
+    femur, the slave of a contact with the patellar cartilage under the patellofemoral contact law."""
+    from kneemesh_core.fe.prefemoral import LAYER_MM, sheet
+
+    bone = m.bone_nodes["femur"]
+    bone_points = np.stack([m.nodes[int(i)] for i in bone])
+    nodes, hexes = sheet(_surface(m, "patellar_cartilage")[0], -m.patella_anterior,
+                         (bone_points, np.searchsorted(bone, m.bone_triangles["femur"])), _surface(m, "femoral_cartilage"),
+                         m.parts["femoral_cartilage"].thickness_mm)
+    if not len(hexes):
+        return
+    ids = m.add_nodes(nodes)
+    elements = np.arange(m.next_element, m.next_element + len(hexes))
+    m.next_element += len(hexes)
+    m.parts["prefemoral"] = Part("prefemoral", "femur", elements, ids[hexes], elements, elements, LAYER_MM)
+    m.body_nodes["femur"].extend(ids.tolist())
+    m.pairs["prefemoral"] = ("prefemoral", "patellar_cartilage")
+    m.contact_k["prefemoral"] = m.contact_k["patellofemoral"]
+
+
 def _articular_faces(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
     """The articular (S2) faces of a cartilage (or meniscus surrogate) as quads (Q, 4) of global node ids, and those ids."""
     part = m.parts[tissue]
@@ -364,7 +392,8 @@ def seat(m: Model) -> dict:
     tibial cartilage (down across a gap, up out of an overlap) and then on by the depth at which the
     contact carries the joint load (:func:`preload_depth`), so that the solver starts next to
     equilibrium; then the patella along its anterior axis until it just touches the femoral
-    cartilage.  The overlaps of the image pose are reported."""
+    cartilage or the prefemoral sheet (:func:`add_prefemoral`, built once the femur is seated).  The
+    overlaps of the image pose are reported."""
     z = m.tibial_axis
     before = {pair: gaps(m, PAIRS[pair][0], PAIRS[pair][1], z) for pair in ("medial", "lateral")}
     g = np.concatenate(list(before.values()))
@@ -374,7 +403,10 @@ def seat(m: Model) -> dict:
     femur_shift = touch - depth
     _move(m, "femur", femur_shift * z)
     toward = -m.patella_anterior  # the patella's articular side faces posterior, towards the trochlea
-    pf = gaps(m, "patellar_cartilage", "femoral_cartilage", toward)
+    if m.load.prefemoral:
+        add_prefemoral(m)
+    pf = np.fmin.reduce([gaps(m, "patellar_cartilage", master, toward)
+                         for master in ("femoral_cartilage", "prefemoral") if master in m.parts])
     patella_shift = float(np.nanmin(pf)) if np.isfinite(pf).any() else 0.0
     _move(m, "patella", patella_shift * toward)
     pf_before = pf  # measured after the femur was seated, along the patella's axis
