@@ -90,6 +90,8 @@ def shared(m: Model) -> str:
         w += _set("ELSET", f"{name}_ART", part.articular) + _set("ELSET", f"{name}_DEEP", part.bone_side)
         w += [f"*SURFACE, NAME={name}_ARTICULAR, TYPE=ELEMENT", f"{name}_ART, S2",
               f"*SURFACE, NAME={name}_BONE_SIDE, TYPE=ELEMENT", f"{name}_DEEP, S1"]
+    for name, members in m.surfaces.items():
+        w += [f"*SURFACE, NAME={name.upper()}_ARTICULAR, TYPE=ELEMENT", *(f"{p.upper()}_ART, S2" for p in members)]
     for s in m.springs:
         w += [f"*ELSET, ELSET=LIG_{s.name}", str(s.element)]
     bundles: dict[str, list[str]] = {}
@@ -113,10 +115,10 @@ def shared(m: Model) -> str:
           f"nu {CARTILAGE_POISSON:g}"]
     for name, (slave, master) in m.pairs.items():
         k = m.contact_k[name]
-        why = (f"K = M / (h_{slave} + h_{master}) = {CONFINED_MODULUS_MPA:.2f} MPa / ({m.parts[slave].thickness_mm:.3f} + "
-               f"{m.parts[master].thickness_mm:.3f} mm)" if name in PAIRS
-               else "the prefemoral sheet (rigid, with the femur; fe/prefemoral.py): K of the patellofemoral pair"
-               if name == "prefemoral" else "meniscus surrogate (rigid, with the tibia): K of its compartment")
+        why = (f"K = M / (h_{PAIRS[name][0]} + h_{PAIRS[name][1]}) = {CONFINED_MODULUS_MPA:.2f} MPa / "
+               f"({m.parts[PAIRS[name][0]].thickness_mm:.3f} + {m.parts[PAIRS[name][1]].thickness_mm:.3f} mm)"
+               + ("; the master also the prefemoral sheet (rigid, with the femur; fe/prefemoral.py)" if master in m.surfaces else "")
+               if name in PAIRS else "meniscus surrogate (rigid, with the tibia): K of its compartment")
         w += [f"** {name}: {why} = {k:.4f} N/mm^3",
               f"*SURFACE INTERACTION, NAME=CONTACT_{name.upper()}", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", f"{k:.6f}"]
     w += ["*AMPLITUDE, NAME=RAMP", "0.0, 0.0, 1.0, 1.0", "*AMPLITUDE, NAME=HOLD", "0.0, 1.0, 1.0, 1.0"]
@@ -242,7 +244,6 @@ def meta(m: Model, flexion_deg: float) -> dict:
         "joint_load_direction": (-m.tibial_axis).round(6).tolist(), "quadriceps_n": m.load.quadriceps_n,
         "flexion_deg": flexion_deg, "cartilage": m.load.cartilage, "contact_k": m.contact_k, "seating": m.seating,
         "pairs": {name: f"{slave.upper()}_ARTICULAR" for name, (slave, _) in m.pairs.items()},
-        "slave_body": {name: m.parts[slave].body for name, (slave, _) in m.pairs.items()},
         "slave_elements": {name: [int(m.parts[slave].elements[0]), int(m.parts[slave].elements[-1])]
                            for name, (slave, _) in m.pairs.items()},
         "ref": {b: m.ref[b] for b in BONES}, "rot": rot_nodes(m),

@@ -113,9 +113,7 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
             row[name] = {"force_n": round(force, 3), "area_mm2": round(area, 3),
                          "mean_pressure_mpa": round(force / area, 4) if area > 0 else 0.0,
                          "peak_pressure_mpa": round(max(peak, 0.0), 4)}
-            # ccx prints the force on the slave: the femur feels the opposite where it is the master
-            sign = 1.0 if meta["slave_body"][name] == "femur" else -1.0
-            femur_force += sign * np.nan_to_num(np.asarray(c["force"], float))
+            femur_force -= np.nan_to_num(np.asarray(c["force"], float))  # the femur feels the opposite
         bundles: dict = defaultdict(float)
         if t in ends:
             u = ends[t]
@@ -148,9 +146,10 @@ MAX_BALANCE_ERROR = 0.05
 
 
 #: The contacts an increment reports (the surrogates' where the model has them): the tibiofemoral ones
-#: (the plates and the meniscus surrogates), then the patella's on the femur (the trochlea and the prefemoral sheet).
+#: (the plates and the meniscus surrogates), then the patella's on the femur (its cartilage and the
+#: prefemoral sheet).
 TIBIOFEMORAL = ("medial", "lateral", "medial_meniscus", "lateral_meniscus")
-CONTACTS = (*TIBIOFEMORAL, "patellofemoral", "prefemoral")
+CONTACTS = (*TIBIOFEMORAL, "patellofemoral")
 
 
 def tibiofemoral_n(row: dict) -> float:
@@ -254,7 +253,7 @@ def plot(result: dict, path: Path) -> None:
     inc = [r for r in result["increments"] if r["flexion_deg"] is not None and r["time"] >= 1.0]  # the whole load on
     x = [r["flexion_deg"] for r in inc]
     fig, axs = plt.subplots(2, 2, figsize=(10, 7), dpi=80)
-    for name, style in zip(CONTACTS, ("-o", "-s", ":o", ":s", "-^", ":^")):
+    for name, style in zip(CONTACTS, ("-o", "-s", ":o", ":s", "-^")):
         if not inc or name not in inc[0]:
             continue
         for ax, key, label in ((axs[0, 0], "force_n", "contact force, N"), (axs[0, 1], "area_mm2", "contact area, mm^2"),

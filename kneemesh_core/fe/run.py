@@ -1,7 +1,7 @@
 """A simulation of a job's knee: the CalculiX wrapper for the flexion asked for, the run, the results.
 
 ``full`` runs the job's own ``fe/knee_ccx.inp`` (0-90 deg in 3 deg increments); ``smoke`` writes a
-wrapper over the same shared model to 15 deg in three increments, in ``fe/smoke/``, and runs that.
+wrapper over the same shared model to 15 deg in two increments, in ``fe/smoke/``, and runs that.
 """
 
 from __future__ import annotations
@@ -18,8 +18,9 @@ from kneemesh_core.fe.simulate import run_ccx
 FE_DIR, SMOKE_DIR = "fe", "smoke"
 #: Where a job's results lie, relative to the job folder: the full flexion first, then the smoke run.
 RESULT_FILES = (f"{FE_DIR}/{RESULTS_FILE}", f"{FE_DIR}/{SMOKE_DIR}/{RESULTS_FILE}")
-#: The smoke run: flexion and increment, deg.
-SMOKE = (15.0, 5.0)
+#: The smoke run: flexion and increment, deg (two increments: the sample's run took 53 s of CPU in three
+#: of 5 deg, 43 s in two, with the same contact at 15 deg within 3 % of force).
+SMOKE = (15.0, 7.5)
 
 
 def write_decks(out_dir: Path, load: LoadCase = LoadCase()) -> dict:
