@@ -82,16 +82,14 @@ def _lps_points(image: sitk.Image, mask: np.ndarray) -> np.ndarray:
 
 def _centroid(image: sitk.Image, mask: np.ndarray) -> np.ndarray:
     """LPS mm (3,) of the centroid of a (z, y, x) boolean mask's voxels."""
-    idx = np.argwhere(mask)[:, ::-1].mean(0, keepdims=True)
+    idx = np.asarray(ndi.center_of_mass(mask))[::-1][None]  # no (N, 3) index array of the whole mask
     return voxel_to_lps(image, idx)[0]
 
 
 def _surface_points(image: sitk.Image, mask: np.ndarray, n: int = 4000) -> np.ndarray:
     """LPS mm (<= n, 3) of a mask's boundary voxels, evenly subsampled."""
-    nz = np.argwhere(mask)
-    lo, hi = nz.min(0), nz.max(0) + 1
-    box = mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-    edge = np.argwhere(box & ~ndi.binary_erosion(box)) + lo
+    box = ndi.find_objects(mask.astype(np.uint8))[0]
+    edge = np.argwhere(mask[box] & ~ndi.binary_erosion(mask[box])) + [s.start for s in box]
     return voxel_to_lps(image, edge[:: max(1, len(edge) // n), ::-1])
 
 
