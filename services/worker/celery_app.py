@@ -47,8 +47,12 @@ def make_app(settings: Settings, main: str = "kneemesh") -> Celery:
     app.conf.update(
         broker_url=settings.broker_url,
         result_backend=settings.backend_url,
+        # a worker scans for unacknowledged tasks to deliver again every second, under a Redis lock that
+        # outlives a worker killed while holding it by kombu's default of 300 s: 30 s here, so that a
+        # kill that lands inside a scan delays redelivery by 30 s, not 5 min (a scan takes milliseconds)
         broker_transport_options={"visibility_timeout": settings.visibility_timeout_s,
-                                  "unacked_restore_interval": 1, "unacked_restore_throttle": 1},
+                                  "unacked_restore_interval": 1, "unacked_restore_throttle": 1,
+                                  "unacked_mutex_expire": 30},
         result_backend_transport_options={"visibility_timeout": settings.visibility_timeout_s},
         broker_connection_retry_on_startup=True,
         broker_connection_timeout=2,
