@@ -219,3 +219,28 @@ def test_a_mesh_short_of_the_gate_but_usable_ships_for_review_not_thrown_away():
     status, reasons = tissue_verdict(False, entry)
     assert status == "review" and reasons[0].startswith("short of the quality gate before blending (min scaled Jacobian 0.21,")
     assert usable({**seen, "frac_edge_ratio_above_6": 0.0026})  # 0.26 % stretched elements: usable, short of the gate
+
+
+def test_a_fragment_too_small_for_the_lattice_is_meshed_on_its_own_finer_lattice():
+    """A 20 x 20 mm plate and, apart from it, a 2.2 x 4 mm fragment (cartilage left between denuded
+    areas): the 1 mm lattice holds no element of the fragment, which gets its own finer quads."""
+    from kneemesh_core.hexmesh.footprint import find_footprint
+    from kneemesh_core.hexmesh.quadmesh import quad_mesh, quad_quality
+    from kneemesh_core.hexmesh.rays import HeightField
+
+    step = 0.25
+    s, t = np.meshgrid(np.arange(0, 40, step), np.arange(0, 40, step), indexing="ij")
+    plate = (s > 5) & (s < 25) & (t > 5) & (t < 25)
+    fragment = (s > 30) & (s < 32.2) & (t > 10) & (t < 14)
+    hit = plate | fragment
+    hf = HeightField(0.0, 0.0, step, np.where(hit, 0.0, np.nan), np.where(hit, 1.5, np.nan), hit)
+    fp = find_footprint(hf, min_thickness=0.2, edge_fraction=0.2, max_slope_deg=65.0, fold_slope_deg=80.0, min_area=2.0)
+    qm = quad_mesh(fp, 1.0)
+    centre = qm.points[qm.quads].mean(1)
+    on_fragment = centre[:, 0] > 28
+    assert on_fragment.sum() >= 4 and (~on_fragment).sum() > 300
+    edges = np.linalg.norm(qm.points[qm.quads] - qm.points[np.roll(qm.quads, -1, axis=1)], axis=2)
+    assert np.median(edges[on_fragment]) < 0.6 < np.median(edges[~on_fragment])  # its own, finer lattice
+    assert quad_quality(qm.points, qm.quads).min() > 0.5
+    # the fragment's quads cover it: its centre is inside one of them, and nothing leaves the footprint
+    assert fp.sample(fp.sdf, centre).max() < 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +45,19 @@ class Footprint:
     def holes(self) -> int:
         """Holes in the footprint (full-thickness defects the mesh keeps open)."""
         return len(enclosed_holes(self.inside)[1])
+
+    def only(self, mask: np.ndarray) -> "Footprint":
+        """The footprint where ``mask`` (ns, nt) bool is: one of its pieces, with its own signed distance."""
+        inside = self.inside & mask
+        return dataclasses.replace(self, inside=inside, sdf=signed_distance(inside, self.grid.step))
+
+
+def signed_distance(mask: np.ndarray, step: float) -> np.ndarray:
+    """Signed distance (mm, negative inside) to the contour of a 2-D mask on a grid of ``step`` mm,
+    smoothed over a grid step so that bilinear samples find its zero level between the cells."""
+    inside_d = ndi.distance_transform_edt(mask) * step
+    outside_d = ndi.distance_transform_edt(~mask) * step
+    return ndi.gaussian_filter(np.where(mask, -(inside_d - 0.5 * step), outside_d - 0.5 * step), 1.0).astype(float)
 
 
 def enclosed_holes(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -108,11 +122,5 @@ def find_footprint(hf: HeightField, *, min_thickness: float, edge_fraction: floa
     if smooth_mm > 0:
         mask = ndi.gaussian_filter(mask.astype(np.float32), smooth_mm / step) > 0.5
         mask = remove_small_holes(mask, max_size=max(int(min_hole / px), 1))
-    inside_d = ndi.distance_transform_edt(mask) * step
-    outside_d = ndi.distance_transform_edt(~mask) * step
-    sdf = np.where(mask, -(inside_d - 0.5 * step), outside_d - 0.5 * step)
-    sdf = ndi.gaussian_filter(sdf, 1.0)
     # heights outside the hits: those of the nearest ray that hit
-    bone = bone_filled
-    joint = joint_filled
-    return Footprint(hf, mask, sdf.astype(float), bone, joint, min_thickness)
+    return Footprint(hf, mask, signed_distance(mask, step), bone_filled, joint_filled, min_thickness)

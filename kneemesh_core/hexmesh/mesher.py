@@ -190,6 +190,7 @@ class Attempt:
     mask: CleanMask
     surface: pv.PolyData
     footprint: Footprint
+    finer_pieces: int  # footprint pieces on a finer lattice (:data:`.quadmesh.FINER`)
 
     @property
     def within_gate(self) -> bool:
@@ -223,7 +224,7 @@ def _attempt(name: str, labels: sitk.Image, tissue: str, opts: HexOptions, h: fl
     q = hex_quality(hm.points, hm.hexes)
     s = summary(q, hm.ring)
     s["self_intersections"] = boundary_crossings(hm.points, hm.hexes)
-    return Attempt(name, hm, q, s, fidelity(hm, surface, cm.label_ml), domain, cm, surface, fp)
+    return Attempt(name, hm, q, s, fidelity(hm, surface, cm.label_ml), domain, cm, surface, fp, qm.finer_pieces)
 
 
 def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOptions()) -> CartilageMesh:
@@ -278,6 +279,7 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
         **best.fidelity,
         "discarded_ml": round(best.mask.discarded_ml, 4),
         "defect_holes": best.footprint.holes(),
+        "finer_pieces": best.finer_pieces,
         "fallbacks": [] if best.name == "default" else [best.name],
         "attempts": tried + ([best.name] if best.name not in tried else []),
         "domain": best.domain.describe(),

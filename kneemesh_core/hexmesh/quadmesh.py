@@ -13,6 +13,8 @@
    holes (full-thickness defects) get their own ring facing inwards.
 4. Coordinate ascent on the worst quad around each node smooths the
    transition (contour nodes slide along the contour).
+5. A piece of the footprint where no lattice cell fits (a fragment of cartilage
+   between denuded areas) is meshed the same way on its own finer lattice.
 """
 
 from __future__ import annotations
@@ -43,12 +45,14 @@ class QuadMesh:
     quads : (Q, 4) node indices, counter-clockwise in (s, t).
     contour : (P,) bool, nodes on the footprint contour.
     ring : (Q,) int, 0 for the pillow ring, 1 for the quads next to it, ...
+    finer_pieces : how many pieces of the footprint have a finer lattice of their own.
     """
 
     points: np.ndarray
     quads: np.ndarray
     contour: np.ndarray
     ring: np.ndarray
+    finer_pieces: int = 0  # pieces of the footprint meshed on a finer lattice of their own
 
 
 def quad_edges(quads: np.ndarray, unique: bool = True) -> np.ndarray:
@@ -135,8 +139,42 @@ def _root_along(fp: Footprint, p: np.ndarray, d: np.ndarray, reach: float, back:
     return np.where(bracketed, t, np.where(f_hi < 0, reach, -reach if back else 0.0))
 
 
+#: A piece of the footprint that holds no element of the lattice (a fragment of cartilage between
+#: denuded areas, smaller or narrower than two elements) is meshed on its own lattice this many times
+#: finer, the first that holds one.
+FINER = (2, 4)
+
+
 def quad_mesh(fp: Footprint, h: float, *, inset: float = 0.5) -> QuadMesh:
-    """Quad mesh of a footprint with element size ``h`` (mm); see the module notes."""
+    """Quad mesh of a footprint with element size ``h`` (mm); see the module notes.  Pieces of the
+    footprint that the lattice leaves empty get their own finer lattice (:data:`FINER`): they share
+    no node with the rest, so the element size may change from piece to piece."""
+    pieces, n = ndi.label(fp.inside)
+    meshes = []
+    held: set[int] = set()
+    main = _lattice_mesh(fp, h, inset)
+    if main is not None:
+        meshes.append(main)
+        lattice_nodes = np.clip(fp.grid.index(main.points[~main.contour]).round().astype(int), 0, np.array(pieces.shape) - 1)
+        held = set(np.unique(pieces[lattice_nodes[:, 0], lattice_nodes[:, 1]]).tolist())
+    for k in sorted(set(range(1, n + 1)) - held):
+        piece = fp.only(pieces == k)
+        for factor in FINER:
+            qm = _lattice_mesh(piece, h / factor, inset)
+            if qm is not None:
+                meshes.append(qm)
+                break
+    if not meshes:
+        raise ValueError("the footprint holds no complete element")
+    offsets = np.cumsum([0] + [len(m.points) for m in meshes[:-1]])
+    return QuadMesh(np.vstack([m.points for m in meshes]), np.vstack([m.quads + o for m, o in zip(meshes, offsets)]),
+                    np.concatenate([m.contour for m in meshes]), np.concatenate([m.ring for m in meshes]),
+                    len(meshes) - (main is not None))
+
+
+def _lattice_mesh(fp: Footprint, h: float, inset: float) -> QuadMesh | None:
+    """The lattice and its pillow ring over a footprint, at element size ``h`` (mm); None where the
+    footprint holds no complete element."""
     grid = fp.grid
     ns, nt = fp.inside.shape
     ni = int((ns - 1) * grid.step // h) + 1
@@ -147,7 +185,7 @@ def quad_mesh(fp: Footprint, h: float, *, inset: float = 0.5) -> QuadMesh:
     cells = deep[:-1, :-1] & deep[1:, :-1] & deep[1:, 1:] & deep[:-1, 1:]
     cells = _clean_cells(_fill_false_holes(cells, fp, lattice[0, 0], h))
     if not cells.any():
-        raise ValueError("the footprint holds no complete element")
+        return None
 
     ci, cj = np.nonzero(cells)
     corners = np.stack([ci * nj + cj, (ci + 1) * nj + cj, (ci + 1) * nj + cj + 1, ci * nj + cj + 1], 1)
