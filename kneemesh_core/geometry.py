@@ -56,6 +56,13 @@ def ray_distances(origins: np.ndarray, direction: np.ndarray, points: np.ndarray
     return out
 
 
+def plane_basis(axis: np.ndarray) -> np.ndarray:
+    """(2, 3) orthonormal basis of the plane normal to unit ``axis`` (3,)."""
+    e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(axis, e1)])
+
+
 def grid_quads(ni: int, nj: int) -> np.ndarray:
     """The quads (E, 4) of a structured ``ni`` x ``nj`` grid of points numbered row by row, cell
     (i, j) at row ``i * (nj - 1) + j``."""

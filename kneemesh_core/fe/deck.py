@@ -115,10 +115,13 @@ def shared(m: Model) -> str:
           f"nu {CARTILAGE_POISSON:g}"]
     for name, (slave, master) in m.pairs.items():
         k = m.contact_k[name]
-        why = (f"K = M / (h_{PAIRS[name][0]} + h_{PAIRS[name][1]}) = {CONFINED_MODULUS_MPA:.2f} MPa / "
-               f"({m.parts[PAIRS[name][0]].thickness_mm:.3f} + {m.parts[PAIRS[name][1]].thickness_mm:.3f} mm)"
-               + ("; the master also the prefemoral sheet (rigid, with the femur; fe/prefemoral.py)" if master in m.surfaces else "")
-               if name in PAIRS else "meniscus surrogate (rigid, with the tibia): K of its compartment")
+        if name in PAIRS:  # K from the two cartilages the pair stands for
+            a, b = PAIRS[name]
+            why = (f"K = M / (h_{a} + h_{b}) = {CONFINED_MODULUS_MPA:.2f} MPa / ({m.parts[a].thickness_mm:.3f} + "
+                   f"{m.parts[b].thickness_mm:.3f} mm)"
+                   + ("; the master also the prefemoral sheet (rigid, with the femur; fe/prefemoral.py)" if master in m.surfaces else ""))
+        else:
+            why = "meniscus surrogate (rigid, with the tibia): K of its compartment"
         w += [f"** {name}: {why} = {k:.4f} N/mm^3",
               f"*SURFACE INTERACTION, NAME=CONTACT_{name.upper()}", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", f"{k:.6f}"]
     w += ["*AMPLITUDE, NAME=RAMP", "0.0, 0.0, 1.0, 1.0", "*AMPLITUDE, NAME=HOLD", "0.0, 1.0, 1.0, 1.0"]

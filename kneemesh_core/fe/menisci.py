@@ -29,7 +29,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
-from kneemesh_core.geometry import grid_quads, hex_sheet, ray_distances
+from kneemesh_core.geometry import grid_quads, hex_sheet, plane_basis, ray_distances
 
 #: How far the wedge reaches over the plate from its rim, and beyond the rim, mm (a meniscus
 #: covers the outer third or so of a plate; its body is 8-12 mm wide).
@@ -48,13 +48,6 @@ SPACING_MM = 1.5
 NORMAL_SMOOTHING_MM = 4.0
 #: Outline raster: pixel, and the closing radius that bridges the gaps between projected nodes, mm.
 PIXEL_MM, CLOSING_MM = 0.4, 1.6
-
-
-def _plane(axis: np.ndarray) -> np.ndarray:
-    """(2, 3) orthonormal basis of the plane normal to unit ``axis``."""
-    e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    return np.stack([e1, np.cross(axis, e1)])
 
 
 def outline(uv: np.ndarray, spacing_mm: float = SPACING_MM) -> np.ndarray:
@@ -93,7 +86,7 @@ def wedge(plate: tuple[np.ndarray, np.ndarray], femoral: list[tuple[np.ndarray, 
     them, nodes 1-4 below and 5-8 on the upper (contact) surface; empty arrays if no rim is left.
     """
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
-    basis = _plane(axis)
+    basis = plane_basis(axis)
     pts, tris = plate
     uv = pts @ basis.T
     ring = outline(uv)
