@@ -15,12 +15,15 @@ import json
 import os
 import re
 import shutil
+import time
 from pathlib import Path
 from typing import Iterator, Protocol
 
 from kneemesh_core.job import MANIFEST_FILE
 
 JOB_ID = re.compile(r"^[0-9a-f]{32}$")
+#: How long deleting a job's files waits for a step that was just stopped to stop writing, s.
+DELETE_PATIENCE_S = 10.0
 
 
 class ArtifactStore(Protocol):
@@ -84,8 +87,16 @@ class FileStore:
         return path if path.is_relative_to(out) and path.is_file() else None
 
     def delete(self, job_id: str) -> None:
+        """Remove a job's upload and outputs.  A step stopped a moment ago may still be writing into
+        them while they go (rmtree then leaves a folder that is not empty), so this tries again
+        until they are gone, for up to ``DELETE_PATIENCE_S``."""
+        deadline = time.monotonic() + DELETE_PATIENCE_S
         for sub in ("input", "out"):
-            shutil.rmtree(self.root / "jobs" / job_id / sub, ignore_errors=True)
+            path = self.root / "jobs" / job_id / sub
+            shutil.rmtree(path, ignore_errors=True)
+            while path.exists() and time.monotonic() < deadline:
+                time.sleep(0.05)
+                shutil.rmtree(path, ignore_errors=True)
 
     def purge(self, job_id: str) -> None:
         """Remove every trace of a job (a rejected upload, an expired job)."""

@@ -92,6 +92,10 @@ def step_task(self, job_id: str, step: str) -> dict:
     context = {"task_id": self.request.id, "worker": self.request.hostname or socket.gethostname(),
                "pid": os.getpid(), "delivery": int(self.request.retries) + 1}
     record = run_step(jobs.out_dir(rec), step, rec.options, jobs.input_path(rec), context)
+    rec = jobs.get(job_id)
+    if rec is None or rec.deleted:  # deleted while this step ran: what it wrote goes too
+        jobs.store.delete(job_id)
+        raise Ignore()
     return {"step": step, "state": record["state"], "seconds": record.get("seconds")}
 
 
@@ -133,8 +137,8 @@ class CeleryRunner:
     def cancel(self, rec, steps: list[dict]) -> None:
         """Stop running steps now; queued ones see the cancelled record and stop the chain."""
         running = [s["task_id"] for s in steps if s.get("task_id") and s["state"] == "running"]
-        if running:
-            self.app.control.revoke(running, terminate=True, signal="SIGTERM")
+        if running:  # wait (briefly) for the workers to say they stopped them, so their files can go
+            self.app.control.revoke(running, terminate=True, signal="SIGTERM", reply=True, timeout=2.0)
 
     def ready(self) -> dict:
         try:
