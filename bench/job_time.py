@@ -1,0 +1,109 @@
+"""Whole-knee job time: `kneemesh mesh` as a lab runs it, one knee after another, on this machine.
+
+    .venv/bin/python bench/job_time.py [MAPS_OR_GLOBS ...] [--every 4] [--workers 2] [--json F]
+
+Default maps: every 4th OAI label map in ../shared/data/real/oai_labels (10 knees; OAI-size
+384x384x160 maps). Each knee is one `kneemesh mesh` process (start-up included), so run this on an
+idle machine. Prints per knee the wall time and where it went along the critical path, read from
+the job's step records: start-up (process start to the first step), ingest, bones, cartilages
+(beside them the anatomy), conform, decks and report; the longest step of each stage; then median,
+p90 and max of the wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import glob
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from rich.table import Table
+
+from kneemesh.console import console as make_console
+from kneemesh_core.job.options import JobOptions
+from kneemesh_core.job.plan import plan
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL = ROOT.parent / "shared" / "data" / "real"
+console = make_console()
+
+
+def _t(stamp: str) -> float:
+    return dt.datetime.fromisoformat(stamp).timestamp()
+
+
+def time_job(path: Path, workers: int, tmp: Path) -> dict:
+    """Run one job as a process and return its wall time, the span of each stage of its plan
+    (first start to last finish of the stage's steps) and the stage's longest step."""
+    out = tmp / path.name.split(".")[0]
+    t0 = time.time()
+    proc = subprocess.run([sys.executable, "-m", "kneemesh", "mesh", str(path), "--out", str(out),
+                           "--workers", str(workers)], capture_output=True, text=True)
+    wall = time.time() - t0
+    if proc.returncode != 0:
+        return {"knee": path.name, "wall": wall, "error": proc.stderr.strip().splitlines()[-1:]}
+    steps = {p.stem: json.loads(p.read_text()) for p in (out / "steps").glob("*.json")}
+    report = json.loads((out / "report.json").read_text())
+    stages = []
+    for stage in plan(JobOptions()):
+        recs = {s: steps[s] for s in stage if s in steps}
+        if not recs:
+            continue
+        start = min(_t(r["started_at"]) for r in recs.values())
+        end = max(_t(r["finished_at"]) for r in recs.values())
+        longest = max(recs, key=lambda s: recs[s]["seconds"])
+        stages.append({"stage": "+".join(stage) if len(stage) == 1 else _stage_name(stage), "start": start,
+                       "span": end - start, "longest": longest, "longest_s": recs[longest]["seconds"]})
+    return {"knee": path.name, "wall": wall, "startup": stages[0]["start"] - t0, "stages": stages,
+            "verdict": report.get("verdict", {}).get("status")}
+
+
+def _stage_name(stage: tuple[str, ...]) -> str:
+    return "bones" if "femur" in stage else "cartilages" if "femoral_cartilage" in stage else "+".join(stage)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("maps", nargs="*")
+    ap.add_argument("--every", type=int, default=4, help="default maps: every Nth OAI map (default 4: 10 knees)")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--json", type=Path, help="also write every knee's timings to this file")
+    a = ap.parse_args()
+    maps = ([Path(p) for m in a.maps for p in sorted(glob.glob(m))] if a.maps
+            else sorted((REAL / "oai_labels").glob("*.nii.gz"))[:: a.every])
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="kneemesh-jobtime-") as tmpdir:
+        for m in maps:
+            r = time_job(m, a.workers, Path(tmpdir))
+            rows.append(r)
+            parts = ", ".join(f"{s['stage']} {s['span']:.1f} ({s['longest']} {s['longest_s']:.1f})" for s in r.get("stages", []))
+            console.print(f"{r['knee']}: {r['wall']:.1f} s" + (f" [red]{r['error']}" if "error" in r else
+                                                                 f"; start-up {r['startup']:.1f}, {parts}; {r['verdict']}"))
+    ok = [r for r in rows if "error" not in r]
+    table = Table(title=f"Whole-knee job, `kneemesh mesh --workers {a.workers}`, {len(ok)}/{len(rows)} knees completed")
+    for col in ("", "wall s", "start-up s", "ingest s", "bones s", "cartilages s", "tail s"):
+        table.add_column(col, justify="right")
+
+    def span(r: dict, name: str) -> float:
+        return sum(s["span"] for s in r["stages"] if s["stage"] == name)
+
+    def tail(r: dict) -> float:
+        return r["wall"] - r["startup"] - sum(span(r, n) for n in ("ingest", "bones", "cartilages"))
+
+    cols = [lambda r: r["wall"], lambda r: r["startup"], lambda r: span(r, "ingest"), lambda r: span(r, "bones"),
+            lambda r: span(r, "cartilages"), tail]
+    for label, f in (("median", statistics.median), ("p90", lambda v: sorted(v)[int(0.9 * (len(v) - 1))]), ("max", max)):
+        table.add_row(label, *(f"{f([c(r) for r in ok]):.1f}" for c in cols))
+    console.print(table)
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
