@@ -80,16 +80,24 @@ def _lps_points(image: sitk.Image, mask: np.ndarray) -> np.ndarray:
     return voxel_to_lps(image, np.argwhere(mask)[:, ::-1])
 
 
-def _centroid(image: sitk.Image, mask: np.ndarray) -> np.ndarray:
-    """LPS mm (3,) of the centroid of a (z, y, x) boolean mask's voxels."""
-    idx = np.asarray(ndi.center_of_mass(mask))[::-1][None]  # no (N, 3) index array of the whole mask
-    return voxel_to_lps(image, idx)[0]
+def _centroids(image: sitk.Image, canon: np.ndarray) -> dict[int, np.ndarray]:
+    """LPS mm (3,) of the centroid of each value present in a (z, y, x) label array, 0 (background)
+    standing for the whole knee (every labelled voxel); one pass over the labelled voxels."""
+    flat = np.flatnonzero(canon)
+    values = canon.ravel()[flat]
+    counts = np.bincount(values, minlength=1)
+    ijk = np.unravel_index(flat, canon.shape)[::-1]
+    sums = np.stack([np.bincount(values, weights=c, minlength=len(counts)) for c in ijk], 1)  # (V, 3)
+    counts[0], sums[0] = len(flat), sums.sum(0)
+    present = np.flatnonzero(counts)
+    lps = voxel_to_lps(image, sums[present] / counts[present, None])
+    return {int(v): p for v, p in zip(present, lps)}
 
 
-def _surface_points(image: sitk.Image, mask: np.ndarray, n: int = 4000) -> np.ndarray:
-    """LPS mm (<= n, 3) of a mask's boundary voxels, evenly subsampled."""
-    box = ndi.find_objects(mask.astype(np.uint8))[0]
-    edge = np.argwhere(mask[box] & ~ndi.binary_erosion(mask[box])) + [s.start for s in box]
+def _surface_points(image: sitk.Image, mask: np.ndarray, box: tuple[slice, ...], n: int = 4000) -> np.ndarray:
+    """LPS mm (<= n, 3) of the boundary voxels of a (z, y, x) mask that lies within ``box``, evenly
+    subsampled."""
+    edge = np.argwhere(mask & ~ndi.binary_erosion(mask)) + [s.start for s in box]
     return voxel_to_lps(image, edge[:: max(1, len(edge) // n), ::-1])
 
 
@@ -99,7 +107,9 @@ def _shape_side(image: sitk.Image, canon: np.ndarray, axes) -> dict:
     from kneemesh_core.anatomy.template import load
 
     template = load()
-    subject = {b: _surface_points(image, canon == LABEL[b]) for b in ("tibia", "femur")}
+    boxes = ndi.find_objects(canon)  # every label's box in one pass
+    subject = {b: _surface_points(image, canon[box] == LABEL[b], box)
+               for b in ("tibia", "femur") if (box := boxes[LABEL[b] - 1]) is not None}
     return side_by_shape({b: template.points(b) for b in subject}, subject, axes)
 
 
@@ -133,32 +143,32 @@ def canonicalise(
     if not canon.any() and not convention.merged_tibial:
         raise KneeMeshError("empty_labels", f"{Path(vol.source).name}: no tissue of the {convention.name!r} convention.")
 
-    knee_mask = canon > 0
-    knee_x = float(_centroid(image, knee_mask)[0]) if knee_mask.any() else None
+    centre = _centroids(image, canon)  # by canonical label; 0: the whole knee
+    knee_x = float(centre[0][0]) if 0 in centre else None
     # the knee's own axes from where its bones lie (a label map need not be in a scanner's frame)
-    bones = {b: canon == LABEL[b] for b in ("femur", "tibia", "patella")}
+    femur, tibia, patella = (centre.get(LABEL[b]) for b in ("femur", "tibia", "patella"))
     coarse = None
     axes = None
-    if bones["femur"].any() and bones["tibia"].any():
-        coarse = coarse_axes(_centroid(image, bones["femur"])[None], _centroid(image, bones["tibia"])[None],
-                             _centroid(image, bones["patella"])[None] if bones["patella"].any() else None)
+    if femur is not None and tibia is not None:
+        coarse = coarse_axes(femur[None], tibia[None], patella[None] if patella is not None else None)
         axes = side_mod.KneeAxes(coarse.centre, coarse.right)
     labelled_ml = None
-    mtc, ltc = canon == LABEL["medial_tibial_cartilage"], canon == LABEL["lateral_tibial_cartilage"]
-    if mtc.any() and ltc.any():
-        labelled_ml = (_centroid(image, mtc), _centroid(image, ltc))
+    mtc, ltc = (centre.get(LABEL[t]) for t in ("medial_tibial_cartilage", "lateral_tibial_cartilage"))
+    if mtc is not None and ltc is not None:
+        labelled_ml = (mtc, ltc)
     fib_vals = convention.value_of("fibula")
     fibula = np.isin(arr, fib_vals) if fib_vals else None
-    fibula_c = _centroid(image, fibula) if fibula is not None and fibula.any() else None
+    fibula_c = _centroids(image, fibula.view(np.uint8)).get(1) if fibula is not None else None
 
     plates = None
     merged = None
     if convention.merged_tibial:
         merged = np.isin(arr, convention.tissues[MERGED_TIBIAL])
         if merged.sum() >= 40:
-            comp, _ = ndi.label(merged)
+            box = ndi.find_objects(merged.view(np.uint8))[0]
+            comp, _ = ndi.label(merged[box])
             pts = _lps_points(image, merged)
-            plates = side_mod.split_plates(pts, comp[merged])
+            plates = side_mod.split_plates(pts, comp[merged[box]])
             if knee_x is None:
                 knee_x = float(pts[:, 0].mean())
 

@@ -150,3 +150,35 @@ def test_custom_mapping_and_unknown_labels(tmp_path):
     for bad in ("femur", "femur=x", "bone=3", "femur=1,tibia=1"):
         with pytest.raises(KneeMeshError):
             parse_custom(bad)
+
+
+def test_one_pass_centroids_and_label_boxes_match_a_direct_count():
+    """The ingest's centroids (one pass over the labelled voxels) and the masks' bounding boxes
+    (from projections) are those that listing every voxel gives, on an oblique, anisotropic grid."""
+    from scipy import ndimage as ndi
+
+    from kneemesh_core.knee import _centroids
+    from kneemesh_core.surfaces.masks import label_box
+
+    rng = np.random.default_rng(3)
+    arr = np.zeros((30, 40, 50), np.uint8)
+    for value in (1, 2, 5):  # blobs; label 3 absent
+        lo = rng.integers(0, 20, 3)
+        arr[lo[0]:lo[0] + 9, lo[1]:lo[1] + 15, lo[2]:lo[2] + 25][rng.random((9, 15, 25)) < 0.5] = value
+    image = sitk.GetImageFromArray(arr)
+    image.SetSpacing((0.36, 0.36, 0.7))
+    image.SetOrigin((-20.0, 15.0, 3.0))
+    c, s = np.cos(0.3), np.sin(0.3)
+    image.SetDirection((c, 0.0, s, 0.0, -1.0, 0.0, s, 0.0, -c))
+    centre = _centroids(image, arr)
+    assert sorted(centre) == [0, 1, 2, 5]
+    for value in (0, 1, 2, 5):
+        mask = arr > 0 if value == 0 else arr == value
+        expected = voxel_to_lps(image, np.asarray(ndi.center_of_mass(mask))[None, ::-1])[0]
+        np.testing.assert_allclose(centre[value], expected, atol=1e-9)
+        idx = np.argwhere(mask)
+        for margin in (0, 2, 30):
+            box = label_box(mask, margin)
+            assert [(b.start, b.stop) for b in box] == [
+                (max(lo - margin, 0), min(hi + margin + 1, n)) for lo, hi, n in zip(idx.min(0), idx.max(0), arr.shape)]
+    assert label_box(arr == 3) is None

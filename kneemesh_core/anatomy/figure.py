@@ -14,48 +14,50 @@ _BUNDLES = ("ACLam", "ACLpl", "PCLal", "PCLpm", "MCLs", "MCLd", "MCLp", "LCL", "
 
 
 def draw(document: dict, bones: dict, frames: dict[str, Frame], path: Path, title: str = "") -> None:
-    """Write the figure; ``bones``: pyvista meshes per bone (LPS mm)."""
-    import matplotlib
+    """Write the figure; ``bones``: pyvista meshes per bone (LPS mm).
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Drawn on a bare Agg figure (no pyplot: its import alone took a second of the job's critical
+    path), with one artist per bundle rather than one per fibre."""
+    from matplotlib import colormaps
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.collections import LineCollection
+    from matplotlib.figure import Figure
 
     ref = frames["tibia"]
-    basis = np.stack([ref.lateral, ref.anterior, ref.proximal], 1)  # columns: lateral, anterior, proximal
+    side = document.get("side", "")
+    # columns: lateral, anterior, proximal; seen from the front, a left knee's lateral side is on the left
+    mirror = np.array([-1.0 if side == "left" else 1.0, 1.0, 1.0])
+    basis = np.stack([ref.lateral, ref.anterior, ref.proximal], 1) * mirror
 
     def local(p: np.ndarray) -> np.ndarray:
         return (np.asarray(p, float) - ref.origin) @ basis
 
-    cmap = plt.get_cmap("tab20")
+    cmap = colormaps["tab20"]
     colour = {b: cmap(i % 20) for i, b in enumerate(_BUNDLES)}
-    fig, axs = plt.subplots(1, 2, figsize=(11, 6.5), dpi=80)
-    side = document.get("side", "")
+    fig = Figure(figsize=(11, 6.5), dpi=80)
+    FigureCanvasAgg(fig)
+    axs = fig.subplots(1, 2)
+    fig.subplots_adjust(left=0.05, right=0.87, bottom=0.08, top=0.88, wspace=0.15)
     views = ((0, 2, "front (lateral to the right)" if side == "right" else "front (lateral to the left)"),
              (1, 2, "medial side (anterior to the right)"))
+    outline = np.concatenate([local(m.points)[:: max(1, m.n_points // 1500)] for m in bones.values() if m is not None])
+    fibres: dict[str, list[np.ndarray]] = {}
+    for fibre in document["fibres"]:
+        ends = [e["lps_mm"] for e in fibre["ends"] if e["lps_mm"] is not None]
+        if len(ends) >= 2:
+            fibres.setdefault(fibre["bundle"], []).append(local(np.array(ends)))
     for ax, (h, v, name) in zip(axs, views):
-        for bone, mesh in bones.items():
-            if mesh is None:
-                continue
-            p = local(mesh.points)[:: max(1, mesh.n_points // 1500)]
-            hx = p[:, h] if not (h == 0 and side == "left") else -p[:, h]
-            ax.scatter(hx, p[:, v], s=0.4, c="0.75", linewidths=0)
-        seen = set()
-        for fibre in document["fibres"]:
-            ends = [e["lps_mm"] for e in fibre["ends"] if e["lps_mm"] is not None]
-            if len(ends) < 2:
-                continue
-            q = local(np.array(ends))
-            qh = q[:, h] if not (h == 0 and side == "left") else -q[:, h]
-            label = fibre["bundle"] if fibre["bundle"] not in seen else None
-            seen.add(fibre["bundle"])
-            ax.plot(qh, q[:, v], "-", color=colour.get(fibre["bundle"], "k"), lw=0.6, alpha=0.7)
-            ax.scatter(qh, q[:, v], s=9, color=colour.get(fibre["bundle"], "k"), label=label, zorder=3)
-        for name_f, frame in frames.items():
+        ax.scatter(outline[:, h], outline[:, v], s=0.4, c="0.75", linewidths=0)
+        for bundle, lines in fibres.items():
+            c = colour.get(bundle, "k")
+            ax.add_collection(LineCollection([q[:, [h, v]] for q in lines], colors=[c], linewidths=0.6, alpha=0.7))
+            ends = np.concatenate(lines)
+            ax.scatter(ends[:, h], ends[:, v], s=9, color=c, label=bundle, zorder=3)
+        for frame in frames.values():
             o = local(frame.origin[None])[0]
             for axis, c in ((frame.lateral, "r"), (frame.anterior, "g"), (frame.proximal, "b")):
                 tip = local((frame.origin + 25.0 * axis)[None])[0]
-                oh, th = (o[h], tip[h]) if not (h == 0 and side == "left") else (-o[h], -tip[h])
-                ax.annotate("", (th, tip[v]), (oh, o[v]), arrowprops={"arrowstyle": "->", "color": c, "lw": 1.5})
+                ax.annotate("", (tip[h], tip[v]), (o[h], o[v]), arrowprops={"arrowstyle": "->", "color": c, "lw": 1.5})
         ax.set_aspect("equal")
         ax.set_title(name, fontsize=10)
         ax.set_xlabel("mm")
@@ -64,6 +66,4 @@ def draw(document: dict, bones: dict, frames: dict[str, Frame], path: Path, titl
     angles = document.get("angles_deg", {})
     fig.suptitle(f"{title} {side} knee: {len(document['fibres'])} fibres; axes red lateral, green anterior, blue "
                  f"proximal; flexion {angles.get('flexion')} deg, varus {angles.get('varus')} deg", fontsize=10)
-    fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)

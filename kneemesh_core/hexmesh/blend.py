@@ -36,7 +36,7 @@ import dataclasses
 
 import numpy as np
 import pyvista as pv
-import vtk
+from vtkmodules.vtkFiltersCore import vtkImplicitPolyDataDistance
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -173,7 +173,7 @@ class _Bone:
         self.tree = cKDTree(self.surface.points)
         self.normals = np.asarray(self.surface.point_data["Normals"])
         self.sigma = sigma_mm
-        self.implicit = vtk.vtkImplicitPolyDataDistance()  # its locator is built once, here
+        self.implicit = vtkImplicitPolyDataDistance()  # its locator is built once, here
         self.implicit.SetInput(self.surface)
 
     def signed(self, pts: np.ndarray) -> np.ndarray:

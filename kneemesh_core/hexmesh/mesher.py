@@ -28,7 +28,7 @@ from kneemesh_core.hexmesh.rays import height_field
 from kneemesh_core.hexmesh.targets import (BLEND_FRAC_GOOD, BLEND_MIN_SCALED_JACOBIAN, FUSED_TOL_MM,
                                            MAX_ATTEMPT_VOLUME_ERROR, MIN_SCALED_JACOBIAN)
 from kneemesh_core.io import voxel_to_lps
-from kneemesh_core.surfaces.masks import CleanMask, clean_mask
+from kneemesh_core.surfaces.masks import CleanMask, clean_mask, label_box
 from kneemesh_core.surfaces.metrics import signed_distance
 from kneemesh_core.surfaces.tissue import cartilage_surface
 from kneemesh_core.tissues import BONE_OF, LABEL
@@ -121,10 +121,11 @@ class CartilageMesh:
 def _bone_centre(labels: sitk.Image, tissue: str) -> np.ndarray:
     """The centroid (3,) in LPS mm of the bone under a cartilage (every 97th voxel)."""
     bone = sitk.GetArrayViewFromImage(labels) == LABEL[BONE_OF[tissue]]
-    if not bone.any():
+    box = label_box(bone)
+    if box is None:
         raise KneeMeshError("bone_missing", f"{tissue}: its bone ({BONE_OF[tissue]}) is not labelled; "
                             "the projection needs it to tell the bone side from the joint side.")
-    return voxel_to_lps(labels, np.argwhere(bone)[::97, ::-1]).mean(0)
+    return voxel_to_lps(labels, (np.argwhere(bone[box])[::97] + [s.start for s in box])[:, ::-1]).mean(0)
 
 
 def _domain(tissue: str, points: np.ndarray, bone_centre: np.ndarray):
@@ -150,6 +151,12 @@ def _domain(tissue: str, points: np.ndarray, bone_centre: np.ndarray):
     return PlaneDomain.fit(points, bone_centre)
 
 
+def _ray_key(opts: HexOptions, h: float) -> tuple:
+    """What the cleaned mask, the surface and the rays of an attempt depend on (:func:`_rays`): the
+    closing and the smallest component, the smoothing, the rays' spacing."""
+    return opts.closing_voxels, opts.min_component_ml, opts.pass_band, h * opts.ray_step_fraction
+
+
 def _rays(labels: sitk.Image, tissue: str, opts: HexOptions, h: float, cache: dict):
     """The cleaned mask, reconstructed surface, domain and height field of an attempt.
 
@@ -158,9 +165,8 @@ def _rays(labels: sitk.Image, tissue: str, opts: HexOptions, h: float, cache: di
     and the smallest component, the surface also on the smoothing, the domain on the surface and
     the bone, the rays also on their spacing.
     """
-    mask_key = (opts.closing_voxels, opts.min_component_ml)
-    surface_key = mask_key + (opts.pass_band,)
-    ray_key = surface_key + (h * opts.ray_step_fraction,)
+    ray_key = _ray_key(opts, h)
+    mask_key, surface_key = ray_key[:2], ray_key[:3]
     if ray_key not in cache:
         if mask_key not in cache:
             cache[mask_key] = clean_mask(labels, LABEL[tissue], opts.closing_voxels, tissue,
@@ -213,13 +219,26 @@ class Attempt:
                 self.summary["min_scaled_jacobian"])
 
 
+def _quads(hf, domain, opts: HexOptions, h: float, cache: dict, ray_key: tuple):
+    """The footprint and quad mesh of an attempt, shared (like :func:`_rays`' steps) by the attempts
+    that agree on the options they depend on: a fallback that changes only the extrusion (the rim's
+    heights read inside) reuses them."""
+    fp_key = ray_key + ("footprint", h, opts.min_thickness, opts.edge_fraction, opts.max_slope_deg, opts.fold_slope_deg)
+    if fp_key not in cache:
+        s_scale = (domain.radius / np.maximum(np.nan_to_num(hf.joint, nan=domain.radius), 1.0)
+                   if isinstance(domain, CylinderDomain) else 1.0)
+        cache[fp_key] = find_footprint(hf, min_thickness=opts.min_thickness, edge_fraction=opts.edge_fraction,
+                                       max_slope_deg=opts.max_slope_deg, fold_slope_deg=opts.fold_slope_deg,
+                                       s_scale=s_scale, min_hole=2.0 * h * h)
+    quad_key = fp_key + (opts.inset,)
+    if quad_key not in cache:
+        cache[quad_key] = quad_mesh(cache[fp_key], h, inset=opts.inset)
+    return cache[fp_key], cache[quad_key]
+
+
 def _attempt(name: str, labels: sitk.Image, tissue: str, opts: HexOptions, h: float, cache: dict) -> Attempt:
     cm, surface, domain, hf = _rays(labels, tissue, opts, h, cache)
-    s_scale = domain.radius / np.maximum(np.nan_to_num(hf.joint, nan=domain.radius), 1.0) if isinstance(domain, CylinderDomain) else 1.0
-    fp = find_footprint(hf, min_thickness=opts.min_thickness, edge_fraction=opts.edge_fraction,
-                        max_slope_deg=opts.max_slope_deg, fold_slope_deg=opts.fold_slope_deg, s_scale=s_scale,
-                        min_hole=2.0 * h * h)
-    qm = quad_mesh(fp, h, inset=opts.inset)
+    fp, qm = _quads(hf, domain, opts, h, cache, _ray_key(opts, h))
     hm = extrude(qm, fp, domain, opts.layers, surface, h, probe_mm=opts.probe_inset * h)
     q = hex_quality(hm.points, hm.hexes)
     s = summary(q, hm.ring)

@@ -6,7 +6,8 @@ import numpy as np
 import pyacvd
 import pymeshfix
 import pyvista as pv
-import vtk
+from vtkmodules.vtkCommonCore import reference
+from vtkmodules.vtkCommonDataModel import vtkStaticCellLocator
 
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.surfaces.isosurface import orient_outward
@@ -25,12 +26,12 @@ def _meshfix(surf: pv.PolyData) -> pv.PolyData:
 
 def closest_points(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
     """Closest point (N, 3) on ``surface`` to each of ``points`` (N, 3), mm."""
-    loc = vtk.vtkStaticCellLocator()
+    loc = vtkStaticCellLocator()
     loc.SetDataSet(surface)
     loc.BuildLocator()
     out = np.empty_like(points)
     cp = [0.0, 0.0, 0.0]
-    cell, sub, d2 = vtk.reference(0), vtk.reference(0), vtk.reference(0.0)
+    cell, sub, d2 = reference(0), reference(0), reference(0.0)
     for i, p in enumerate(points):  # VTK has no batched closest-point query; ~3k points per bone
         loc.FindClosestPoint(p, cp, cell, sub, d2)
         out[i] = cp

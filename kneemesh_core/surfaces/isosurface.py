@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pyvista as pv
 import SimpleITK as sitk
-import vtk
+from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D, vtkWindowedSincPolyDataFilter
 
 from kneemesh_core.surfaces.masks import CleanMask
 
@@ -27,8 +27,10 @@ def mask_surface(
     smoothing_iterations: int = 20,
     pass_band: float = 0.05,
     decimation: float = 0.8,
+    oriented: bool = True,
 ) -> pv.PolyData:
-    """Closed triangle surface of a cleaned mask, in LPS mm, normals outward.
+    """Closed triangle surface of a cleaned mask, in LPS mm, normals outward (as they come, where
+    ``oriented`` is off: for unsigned distances).
 
     Flying-edges marching cubes on the zero-padded mask (so a bone cut by the
     field of view is capped flat where it leaves the image), windowed-sinc
@@ -45,7 +47,7 @@ def mask_surface(
     m = np.pad(cm.mask, 1).astype(np.float32)  # (K, J, I)
     grid = pv.ImageData(dimensions=m.shape[::-1], spacing=(1.0, 1.0, 1.0), origin=(-1.0, -1.0, -1.0))
     grid.point_data["m"] = m.ravel(order="C")
-    fe = vtk.vtkFlyingEdges3D()
+    fe = vtkFlyingEdges3D()
     fe.SetInputData(grid)
     fe.SetValue(0, 0.5)
     fe.ComputeNormalsOff()
@@ -55,7 +57,7 @@ def mask_surface(
     # to LPS first, so smoothing and decimation act on physical geometry
     surf = surf.transform(index_to_lps_matrix(cm.image, cm.offset_ijk), inplace=False)
     if smoothing_iterations:
-        ws = vtk.vtkWindowedSincPolyDataFilter()
+        ws = vtkWindowedSincPolyDataFilter()
         ws.SetInputData(surf)
         ws.SetNumberOfIterations(smoothing_iterations)
         ws.SetPassBand(pass_band)
@@ -67,7 +69,8 @@ def mask_surface(
         surf = pv.wrap(ws.GetOutput())
     if decimation:
         surf = surf.decimate_pro(decimation, preserve_topology=True) if surf.n_cells < 500 else surf.decimate(decimation)
-    return orient_outward(surf.clean())
+    surf = surf.clean()
+    return orient_outward(surf) if oriented else surf
 
 
 def orient_outward(surf: pv.PolyData) -> pv.PolyData:

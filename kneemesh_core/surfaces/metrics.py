@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pymeshfix
 import pyvista as pv
-import vtk
-from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+from vtkmodules.vtkCommonCore import vtkDoubleArray
+from vtkmodules.vtkFiltersCore import vtkImplicitPolyDataDistance
 
 
 def edges_mm(surf: pv.PolyData) -> np.ndarray:
@@ -56,16 +57,16 @@ def crossing_edges(surf: pv.PolyData) -> int:
 
 
 def signed_distance(points: np.ndarray, surface: pv.PolyData,
-                    implicit: vtk.vtkImplicitPolyDataDistance | None = None) -> np.ndarray:
+                    implicit: vtkImplicitPolyDataDistance | None = None) -> np.ndarray:
     """Signed distance (mm) of each point (N, 3) to a closed ``surface``: negative inside.
 
     ``implicit``: that surface's ``vtkImplicitPolyDataDistance``, for callers that ask many times
     (building its locator is most of the cost of a small query)."""
     f = implicit
     if f is None:
-        f = vtk.vtkImplicitPolyDataDistance()
+        f = vtkImplicitPolyDataDistance()
         f.SetInput(surface)
-    out = vtk.vtkDoubleArray()
+    out = vtkDoubleArray()
     f.FunctionValue(numpy_to_vtk(np.ascontiguousarray(points, dtype=float), deep=True), out)
     return vtk_to_numpy(out).copy()
 

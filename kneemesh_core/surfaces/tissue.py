@@ -31,9 +31,10 @@ class SurfaceOptions:
 
 
 def label_surface(labels: sitk.Image, tissue: str) -> pv.PolyData:
-    """The label boundary itself: marching cubes of the raw label, no closing or smoothing."""
+    """The label boundary itself: marching cubes of the raw label, no closing or smoothing (normals
+    as they come: it is measured against by unsigned distance)."""
     cm = clean_mask(labels, LABEL[tissue], 0, tissue)
-    return mask_surface(cm, smoothing_iterations=0, decimation=0)
+    return mask_surface(cm, smoothing_iterations=0, decimation=0, oriented=False)
 
 
 def reconstruct_bone(labels: sitk.Image, bone: str, opts: SurfaceOptions) -> tuple[pv.PolyData, dict]:
