@@ -1,6 +1,6 @@
 """Cartilage meshing robustness: every label map of a folder or glob, and phantoms, through the mesher.
 
-    .venv/bin/python bench/robustness.py [MAPS_OR_GLOBS ...] [--phantoms N [--first-phantom S]] [--workers 2] [--element-size 1.0]
+    .venv/bin/python bench/robustness.py [MAPS_OR_GLOBS_OR_phantom:SEED:SIDE:SEVERITY ...] [--phantoms N [--first-phantom S]] [--workers 2] [--element-size 1.0]
 
 Default maps: every real label map in ../shared/data/real (pymskt and oai_labels).
 Prints the success rate (quality gate passed), how many also meet the fidelity targets, a quality table per tissue
@@ -73,11 +73,13 @@ def main() -> None:
     ap.add_argument("--no-blend", action="store_true", help="skip edge blending and bone fusion")
     ap.add_argument("--json", type=Path, help="also write every report entry to this file")
     args = ap.parse_args()
-    sources = [p for m in args.maps for p in sorted(glob.glob(m))]
+    sources = [p for m in args.maps for p in (sorted(glob.glob(m)) if not m.startswith("phantom:") else [m])]
     if not sources and not args.no_real:
         sources = [str(p) for p in sorted((REAL / "pymskt" / "labels").glob("*.nrrd"))
                    + sorted((REAL / "oai_labels").glob("*.nii.gz"))]
-    sources += [f"phantom:{i}:{'left' if i % 2 else 'right'}:{i % 4}"
+    # odd seeds left; each side takes every severity in turn (seeds run before 2026-12-01 had severity
+    # i % 4, so a left knee was never severity 0 or 2: pass those as phantom:SEED:SIDE:SEVERITY)
+    sources += [f"phantom:{i}:{'left' if i % 2 else 'right'}:{(i // 2) % 4}"
                 for i in range(args.first_phantom, args.first_phantom + args.phantoms)]
     results: dict[str, dict] = {}
     times = []
