@@ -58,13 +58,14 @@ def time_job(path: Path, workers: int, tmp: Path) -> dict:
         start = min(_t(r["started_at"]) for r in recs.values())
         end = max(_t(r["finished_at"]) for r in recs.values())
         longest = max(recs, key=lambda s: recs[s]["seconds"])
-        stages.append({"stage": "+".join(stage) if len(stage) == 1 else _stage_name(stage), "start": start,
+        stages.append({"stage": _stage_name(stage), "start": start,
                        "span": end - start, "longest": longest, "longest_s": recs[longest]["seconds"]})
     return {"knee": path.name, "wall": wall, "startup": stages[0]["start"] - t0, "stages": stages,
             "verdict": report.get("verdict", {}).get("status")}
 
 
 def _stage_name(stage: tuple[str, ...]) -> str:
+    """A stage's name in the table: its step, or what its steps mesh."""
     return "bones" if "femur" in stage else "cartilages" if "femoral_cartilage" in stage else "+".join(stage)
 
 

@@ -19,6 +19,7 @@ from kneemesh_core import side as side_mod
 from kneemesh_core.anatomy.frames import coarse_axes
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.io import Volume, read_label_map, voxel_to_lps, voxel_volume_ml
+from kneemesh_core.surfaces.masks import label_box
 from kneemesh_core.tissues import (
     LABEL,
     MERGED_TIBIAL,
@@ -165,7 +166,7 @@ def canonicalise(
     if convention.merged_tibial:
         merged = np.isin(arr, convention.tissues[MERGED_TIBIAL])
         if merged.sum() >= 40:
-            box = ndi.find_objects(merged.view(np.uint8))[0]
+            box = label_box(merged)
             comp, _ = ndi.label(merged[box])
             pts = _lps_points(image, merged)
             plates = side_mod.split_plates(pts, comp[merged[box]])

@@ -219,11 +219,11 @@ class Attempt:
                 self.summary["min_scaled_jacobian"])
 
 
-def _quads(hf, domain, opts: HexOptions, h: float, cache: dict, ray_key: tuple):
+def _quads(hf, domain, opts: HexOptions, h: float, cache: dict):
     """The footprint and quad mesh of an attempt, shared (like :func:`_rays`' steps) by the attempts
     that agree on the options they depend on: a fallback that changes only the extrusion (the rim's
     heights read inside) reuses them."""
-    fp_key = ray_key + ("footprint", h, opts.min_thickness, opts.edge_fraction, opts.max_slope_deg, opts.fold_slope_deg)
+    fp_key = _ray_key(opts, h) + ("footprint", h, opts.min_thickness, opts.edge_fraction, opts.max_slope_deg, opts.fold_slope_deg)
     if fp_key not in cache:
         s_scale = (domain.radius / np.maximum(np.nan_to_num(hf.joint, nan=domain.radius), 1.0)
                    if isinstance(domain, CylinderDomain) else 1.0)
@@ -238,7 +238,7 @@ def _quads(hf, domain, opts: HexOptions, h: float, cache: dict, ray_key: tuple):
 
 def _attempt(name: str, labels: sitk.Image, tissue: str, opts: HexOptions, h: float, cache: dict) -> Attempt:
     cm, surface, domain, hf = _rays(labels, tissue, opts, h, cache)
-    fp, qm = _quads(hf, domain, opts, h, cache, _ray_key(opts, h))
+    fp, qm = _quads(hf, domain, opts, h, cache)
     hm = extrude(qm, fp, domain, opts.layers, surface, h, probe_mm=opts.probe_inset * h)
     q = hex_quality(hm.points, hm.hexes)
     s = summary(q, hm.ring)

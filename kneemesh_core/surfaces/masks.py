@@ -52,11 +52,12 @@ def clean_mask(labels: sitk.Image, value: int, closing_voxels: int, name: str = 
     voxel_ml = float(np.prod(labels.GetSpacing())) / 1000.0
     radius = max(closing_voxels // 2, 0)
     margin = radius + 2
-    box = label_box(sitk.GetArrayViewFromImage(labels) == value, margin)
+    arr = sitk.GetArrayViewFromImage(labels)
+    box = label_box(arr == value, margin)
     if box is None:
         raise KneeMeshError("tissue_missing", f"{name}: the label map has no {name} voxels.")
     lo = [s.start for s in box]
-    crop = (sitk.GetArrayViewFromImage(labels)[box] == value).astype(np.uint8)
+    crop = (arr[box] == value).astype(np.uint8)
     n_label = int(np.count_nonzero(crop))
     # Closing by a cube is a max filter then a min filter, both separable: scipy's
     # rank filters run 5-10x faster here than SimpleITK's BinaryMorphologicalClosing.
