@@ -9,7 +9,7 @@ import pyvista as pv
 from conftest import OAI, PYMSKT_RIGHT, real
 from kneemesh_core.hexmesh import BlendOptions, HexOptions, blend_cartilage, mesh_cartilage
 from kneemesh_core.hexmesh.conform import conform_bone
-from kneemesh_core.hexmesh.quality import boundary_crossings
+from kneemesh_core.hexmesh.quality import boundary_crossings, crossing_nodes
 from kneemesh_core.knee import load_knee
 from kneemesh_core.job import JobOptions
 from kneemesh_core.surfaces.metrics import crossing_edges, signed_distance
@@ -73,6 +73,35 @@ def test_crossing_edges_finds_overlaps():
     cube = pv.Cube().triangulate()
     assert crossing_edges(cube) == 0 and crossing_edges(pv.Sphere()) == 0
     assert crossing_edges(cube.merge(pv.Cube(center=(0.5, 0.3, 0.2)).triangulate(), merge_points=False)) > 0
+
+
+def test_crossing_nodes_are_those_of_the_crossing_boundary():
+    """Two unit hexahedra, the second pushed half into the first: the nodes of the crossing
+    edges and faces are found on both, and none for the two apart."""
+    cube = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+    hexes = np.array([np.arange(8), np.arange(8, 16)])
+    apart = np.vstack([cube, cube + [2.0, 0, 0]])
+    assert len(crossing_nodes(apart, hexes)) == 0
+    into = np.vstack([cube, cube + [0.5, 0.25, 0.25]])
+    nodes = crossing_nodes(into, hexes)
+    assert (nodes < 8).any() and (nodes >= 8).any()
+    assert boundary_crossings(into, hexes) > 0
+
+
+def test_pieces_on_finer_lattices_are_blended_without_crossing_the_main_mesh():
+    """OAI 9055361_96m's femoral cartilage: three tips meshed on finer lattices lie 0.5 mm beside the
+    main mesh. Blended, their feet and the main edge's reach for the same bone and crossed (six
+    boundary edges); the blend backs off the crossing columns, so the pieces ship with the rest."""
+    knee = load_knee(real(OAI / "OAI_AKOA_9055361_96m.nii.gz"))
+    cm = mesh_cartilage(knee.labels, "femoral_cartilage", HexOptions())
+    assert cm.facts["finer_pieces"] >= 1  # the case this is for
+    femur = reconstruct_bone(knee.labels, "femur", SurfaceOptions())[0]
+    out = blend_cartilage(cm, femur)
+    b = out.facts["blend"]
+    assert b["applied"] and b["passed"] and b["self_intersections"] == 0, b
+    assert (out.mesh.node_piece > 0).any() and "finer_pieces_left_out" not in out.facts
+    assert boundary_crossings(out.mesh.points, out.mesh.hexes) == 0
+    assert out.facts["coverage"] == cm.facts["coverage"]
 
 
 def test_no_blend_option_round_trips():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -242,5 +243,59 @@ def test_a_fragment_too_small_for_the_lattice_is_meshed_on_its_own_finer_lattice
     edges = np.linalg.norm(qm.points[qm.quads] - qm.points[np.roll(qm.quads, -1, axis=1)], axis=2)
     assert np.median(edges[on_fragment]) < 0.6 < np.median(edges[~on_fragment])  # its own, finer lattice
     assert quad_quality(qm.points, qm.quads).min() > 0.5
-    # the fragment's quads cover it: its centre is inside one of them, and nothing leaves the footprint
-    assert fp.sample(fp.sdf, centre).max() < 0
+    # nothing leaves the footprint: each quad's centre lies inside its own piece's contour
+    assert _inside_own_piece(qm).all()
+
+
+def _inside_own_piece(qm) -> np.ndarray:
+    """(Q,) bool: each quad's centre inside the contour of the piece its nodes belong to."""
+    centre = qm.points[qm.quads].mean(1)
+    piece = qm.piece[qm.quads[:, 0]]
+    return np.array([qm.pieces[k].sample(qm.pieces[k].sdf, c[None])[0] for k, c in zip(piece, centre)]) < 0
+
+
+def test_a_tip_narrower_than_two_elements_is_meshed_on_a_finer_lattice_beside_the_plate():
+    """A 20 x 20 mm plate with a 1.5 mm wide, 8 mm long tip (cartilage between two lesions): the 1 mm
+    lattice cannot enter the tip, which gets its own finer quads, beside the plate's and not over them."""
+    from kneemesh_core.hexmesh.footprint import find_footprint
+    from kneemesh_core.hexmesh.quadmesh import _covered, quad_mesh, quad_quality
+    from kneemesh_core.hexmesh.rays import HeightField
+
+    step = 0.25
+    s, t = np.meshgrid(np.arange(0, 40, step), np.arange(0, 40, step), indexing="ij")
+    plate = (s > 5) & (s < 25) & (t > 5) & (t < 25)
+    tip = (s >= 25) & (s < 33) & (t > 14) & (t < 15.5)
+    hit = plate | tip
+    hf = HeightField(0.0, 0.0, step, np.where(hit, 0.0, np.nan), np.where(hit, 1.5, np.nan), hit)
+    fp = find_footprint(hf, min_thickness=0.2, edge_fraction=0.2, max_slope_deg=65.0, fold_slope_deg=80.0, min_area=2.0)
+    qm = quad_mesh(fp, 1.0)
+    on_tip = qm.piece[qm.quads[:, 0]] > 0
+    centre = qm.points[qm.quads].mean(1)
+    assert qm.finer_pieces == 1 and on_tip.sum() >= 8
+    assert centre[on_tip, 0].max() > 31  # most of the tip's length
+    assert quad_quality(qm.points, qm.quads).min() > 0.5
+    assert _inside_own_piece(qm).all()
+    # the tip's quads lie beside the plate's mesh, never over it
+    main = dataclasses.replace(qm, quads=qm.quads[~on_tip])
+    plate_cover = _covered(main, fp)
+    idx = np.round(fp.grid.index(centre[on_tip])).astype(int)
+    assert not plate_cover[idx[:, 0], idx[:, 1]].any()
+
+
+def test_keep_columns_leaves_out_whole_columns_and_keeps_the_nodes_layer_by_layer():
+    """Two quads side by side, extruded in two layers: keeping the second quad's column keeps its two
+    elements with their own corner coordinates, and drops the nodes only the first one used."""
+    from kneemesh_core.hexmesh.extrude import HexMesh, keep_columns
+
+    quad_points = np.array([[0, 0], [1, 0], [2, 0], [0, 1], [1, 1], [2, 1]], float)
+    quads = np.array([[0, 1, 4, 3], [1, 2, 5, 4]])
+    layers = 2
+    points = np.vstack([np.c_[quad_points, np.full(6, z)] for z in (0.0, 0.5, 1.0)])
+    hexes = np.concatenate([np.hstack([quads + 6 * k, quads + 6 * (k + 1)]) for k in range(layers)])
+    hm = HexMesh(points, hexes, np.repeat(np.arange(layers), 2), np.zeros(4, int), np.repeat(np.arange(layers + 1), 6),
+                 np.zeros(18, bool), np.zeros(18, int))
+    kept = keep_columns(hm, quads, np.array([False, True]))
+    assert len(kept.hexes) == 2 and len(kept.points) == 12
+    np.testing.assert_array_equal(kept.points[kept.hexes], points[hexes[[1, 3]]])
+    np.testing.assert_array_equal(kept.node_layer, np.repeat([0, 1, 2], 4))
+    assert (kept.points[kept.node_layer == 1][:, 2] == 0.5).all()

@@ -21,8 +21,11 @@ columns of a finished :class:`.extrude.HexMesh`:
    layer, and leaning the tapered columns outwards by half the local slope
    splits that tilt between each element's bottom and top corners.
 3. **Back off** where an element falls below its floor (``edge_floor`` in the
-   outermost ring, 0.5 beyond): those columns and their neighbours lose 30 % of
-   their displacement at a time, and the last rounds give them up entirely.
+   outermost ring, 0.5 beyond), a node would enter the bone, or, once every
+   element is fine, the boundary would cross itself (feet reaching for the same
+   bone from both sides of a narrow gap: a tip meshed on a finer lattice half a
+   millimetre beside the main mesh): those columns and their neighbours lose 30 %
+   of their displacement at a time, and the last rounds give them up entirely.
    Runs are first capped at 0.4 of the clearance to the nearest
    non-neighbouring edge node, so edges facing each other across a hole or a
    narrow neck never meet.
@@ -45,6 +48,7 @@ from kneemesh_core.geometry import interpolate_layers, quad_node_normals, unit
 from kneemesh_core.hexmesh.extrude import HexMesh
 from kneemesh_core.hexmesh.optimize import independent, layer_quality
 from kneemesh_core.hexmesh.quadmesh import quad_edges
+from kneemesh_core.hexmesh.quality import crossing_nodes
 from kneemesh_core.hexmesh.targets import BLEND_MIN_SCALED_JACOBIAN, FUSED_TOL_MM, MIN_SCALED_JACOBIAN
 from kneemesh_core.surfaces.metrics import signed_distance
 
@@ -453,7 +457,12 @@ def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptio
             above = pts.reshape(L + 1, P, 3)[1:, cols].reshape(-1, 3)
             inside = (signed_at(above) < -FUSED_TOL_MM).reshape(L, -1).any(0)
             bad[cols[inside]] = True
-        return bad & (scale > 0) & zone
+        bad &= (scale > 0) & zone
+        if not bad.any():  # elements all fine: the boundary may still fold over itself (edges facing
+            # across a narrow gap, or a piece on a finer lattice beside the edge, reaching for the same bone)
+            bad[crossing_nodes(pts, hm.hexes) % P] = True
+            bad &= (scale > 0) & zone
+        return bad
 
     scale = np.ones(P)
     tries = np.zeros(P, int)

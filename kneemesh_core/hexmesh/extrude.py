@@ -51,6 +51,8 @@ class HexMesh:
     ring : (Q * L,) perimeter ring of the element's column (0 = outermost).
     node_layer : (P * (L + 1),) 0 = bone side, L = articular.
     node_edge : (P * (L + 1),) bool, nodes on the cartilage edge (the footprint contour).
+    node_piece : (P * (L + 1),) int, 0 on the main lattice, k on the k-th piece meshed on a finer
+        lattice of its own (:attr:`.quadmesh.QuadMesh.piece`).
     """
 
     points: np.ndarray
@@ -59,6 +61,7 @@ class HexMesh:
     ring: np.ndarray
     node_layer: np.ndarray
     node_edge: np.ndarray
+    node_piece: np.ndarray
 
 
 def _node_mean(values: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:
@@ -93,13 +96,14 @@ def _edge_ratio_guard(bone: np.ndarray, top: np.ndarray, quads: np.ndarray, laye
     return top
 
 
-def _onto_contour(fp: Footprint, st: np.ndarray, on: np.ndarray) -> np.ndarray:
-    """Parameter points (N, 2), those flagged ``on`` moved back onto the contour (Newton steps
-    on the signed distance)."""
+def _onto_contour(qm: QuadMesh, st: np.ndarray) -> np.ndarray:
+    """Parameter points (P, 2), one per node of ``qm``, those of its contour moved back onto it
+    (Newton steps on the signed distance of each node's own piece)."""
     st = st.copy()
+    on = qm.contour
     for _ in range(2):
-        g = fp.gradient(st[on])
-        st[on] -= (fp.sample(fp.sdf, st[on]) / np.maximum((g * g).sum(1), 1e-6))[:, None] * g
+        g = qm.sdf_gradient(st[on], on)
+        st[on] -= (qm.sdf(st[on], on) / np.maximum((g * g).sum(1), 1e-6))[:, None] * g
     return st
 
 
@@ -114,7 +118,7 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
     n = len(qm.points)
     quads = qm.quads
     tm = intersector(surface)
-    inward = unit(-fp.gradient(qm.points))
+    inward = unit(-qm.sdf_gradient(qm.points))
     probe = np.where(qm.contour[:, None], qm.points + probe_mm * inward, qm.points)
     bone = domain.position(qm.points, fp.sample(fp.bone, probe))
     ray_top = domain.position(qm.points, fp.sample(fp.joint, probe))
@@ -180,7 +184,7 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
         length = np.linalg.norm(col, axis=1, keepdims=True)
         tops = [top, _node_mean(top, edges, n), bone + unit(_node_mean(unit(col), edges, n)) * length]
         tops += [top + a * t for a in (0.4, -0.4, 0.2, -0.2, 0.1, -0.1, 0.05, -0.05) for t in (t1, t2, normal)]
-        slides = [_onto_contour(fp, u + a * h_mm * d, qm.contour) for a in (0.3, 0.12) for d in EIGHT_DIRECTIONS]
+        slides = [_onto_contour(qm, u + a * h_mm * d) for a in (0.3, 0.12) for d in EIGHT_DIRECTIONS]
         lifted = [domain.position(v, fp.sample(fp.bone, np.where(qm.contour[:, None], v + probe_mm * inward, v)))
                   for v in slides]
         bottoms = np.stack([bone] * len(tops) + lifted)
@@ -208,4 +212,18 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
         ring=np.tile(qm.ring, layers),
         node_layer=np.repeat(np.arange(layers + 1), n),
         node_edge=np.tile(qm.contour, layers + 1),
+        node_piece=np.tile(qm.piece, layers + 1),
     )
+
+
+def keep_columns(hm: HexMesh, quads: np.ndarray, keep: np.ndarray) -> HexMesh:
+    """``hm``, extruded from ``quads`` (Q, 4), with only the columns of elements over the quads flagged
+    ``keep`` (Q,) bool, and their nodes (still layer by layer)."""
+    levels = int(hm.node_layer.max()) + 1
+    node = np.zeros(len(hm.points) // levels, bool)
+    node[quads[keep]] = True
+    keep_nodes = np.tile(node, levels)
+    index = np.cumsum(keep_nodes) - 1
+    kept = np.tile(keep, len(hm.hexes) // len(quads))
+    return HexMesh(hm.points[keep_nodes], index[hm.hexes[kept]], hm.layer[kept], hm.ring[kept], hm.node_layer[keep_nodes],
+                   hm.node_edge[keep_nodes], hm.node_piece[keep_nodes])

@@ -23,6 +23,8 @@ class Footprint:
     sdf : (ns, nt) signed distance to the footprint contour, mm (negative inside).
     bone, joint : (ns, nt) surface heights, mm, extended outside the footprint by
         their nearest inside value so that contour nodes can be placed.
+    fine : (ns, nt) bool, the footprint with its contour smoothed over a quarter of the
+        distance: it keeps tails and tips too narrow for the lattice, which are meshed finer.
     """
 
     grid: HeightField
@@ -31,6 +33,7 @@ class Footprint:
     bone: np.ndarray
     joint: np.ndarray
     edge_thickness: float  # thickness at the contour, mm
+    fine: np.ndarray
 
     def sample(self, field: np.ndarray, st: np.ndarray) -> np.ndarray:
         """Bilinear sample of a grid field at parameter points (N, 2)."""
@@ -47,9 +50,9 @@ class Footprint:
         return len(enclosed_holes(self.inside)[1])
 
     def only(self, mask: np.ndarray) -> "Footprint":
-        """The footprint where ``mask`` (ns, nt) bool is: one of its pieces, with its own signed distance."""
-        inside = self.inside & mask
-        return dataclasses.replace(self, inside=inside, sdf=signed_distance(inside, self.grid.step))
+        """A footprint of its own where ``mask`` (ns, nt) bool is (a piece to mesh apart), with its own
+        signed distance."""
+        return dataclasses.replace(self, inside=mask, sdf=signed_distance(mask, self.grid.step), fine=mask)
 
 
 def signed_distance(mask: np.ndarray, step: float) -> np.ndarray:
@@ -90,7 +93,8 @@ def find_footprint(hf: HeightField, *, min_thickness: float, edge_fraction: floa
     filled, before and after the contour is smoothed with a Gaussian of
     ``smooth_mm``: ray noise, or a pinhole smaller than the elements could
     ring with a pillow (the caller passes about twice an element's area).
-    Larger holes (full-thickness defects) stay.  The thresholds have no defaults here: the
+    Larger holes (full-thickness defects) stay.  ``fine`` is smoothed over a quarter of
+    ``smooth_mm``.  The thresholds have no defaults here: the
     mesher's :class:`.mesher.HexOptions` is their one home.
     """
     step = hf.step
@@ -119,8 +123,8 @@ def find_footprint(hf: HeightField, *, min_thickness: float, edge_fraction: floa
     mask &= ~rim & ~ndi.binary_dilation(jump, iterations=2)
     mask = remove_small_objects(mask, max_size=max(int(min_area / px), 1))
     mask = remove_small_holes(mask, max_size=max(int(min_hole / px), 1))
-    if smooth_mm > 0:
-        mask = ndi.gaussian_filter(mask.astype(np.float32), smooth_mm / step) > 0.5
-        mask = remove_small_holes(mask, max_size=max(int(min_hole / px), 1))
+    smoothed = [ndi.gaussian_filter(mask.astype(np.float32), sigma / step) > 0.5 if sigma > 0 else mask
+                for sigma in (smooth_mm, smooth_mm / 4)]
+    mask, fine = (remove_small_holes(m, max_size=max(int(min_hole / px), 1)) for m in smoothed)
     # heights outside the hits: those of the nearest ray that hit
-    return Footprint(hf, mask, signed_distance(mask, step), bone_filled, joint_filled, min_thickness)
+    return Footprint(hf, mask, signed_distance(mask, step), bone_filled, joint_filled, min_thickness, fine)

@@ -19,14 +19,14 @@ import SimpleITK as sitk
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.hexmesh.blend import BlendOptions, blend
 from kneemesh_core.hexmesh.domain import CylinderDomain, PlaneDomain
-from kneemesh_core.hexmesh.extrude import HexMesh, extrude
+from kneemesh_core.hexmesh.extrude import HexMesh, extrude, keep_columns
 from kneemesh_core.hexmesh.fidelity import fidelity, fidelity_checks, passes_fidelity, short_of_footprint
 from kneemesh_core.hexmesh.footprint import Footprint, find_footprint
 from kneemesh_core.hexmesh.quadmesh import quad_mesh
 from kneemesh_core.hexmesh.quality import boundary_crossings, hex_quality, passes_gate, summary, to_grid, usable
 from kneemesh_core.hexmesh.rays import height_field
 from kneemesh_core.hexmesh.targets import (BLEND_FRAC_GOOD, BLEND_MIN_SCALED_JACOBIAN, FUSED_TOL_MM,
-                                           MAX_ATTEMPT_VOLUME_ERROR, MIN_SCALED_JACOBIAN)
+                                           MAX_ATTEMPT_VOLUME_ERROR, MAX_EDGE_RATIO, MIN_SCALED_JACOBIAN)
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.surfaces.masks import CleanMask, clean_mask, label_box
 from kneemesh_core.surfaces.metrics import signed_distance
@@ -241,9 +241,19 @@ def _attempt(name: str, labels: sitk.Image, tissue: str, opts: HexOptions, h: fl
     fp, qm = _quads(hf, domain, opts, h, cache)
     hm = extrude(qm, fp, domain, opts.layers, surface, h, probe_mm=opts.probe_inset * h)
     q = hex_quality(hm.points, hm.hexes)
+    # the pieces on finer lattices (tips, tails, fragments) are there for coverage: a column of
+    # theirs with an element short of the gate is left out, and never costs the cartilage its mesh
+    short = (q["scaled_jacobian"] < MIN_SCALED_JACOBIAN) | (q["max_edge_ratio"] > MAX_EDGE_RATIO)
+    drop = np.zeros(len(qm.quads), bool)
+    np.logical_or.at(drop, np.arange(len(hm.hexes)) % len(qm.quads), short)
+    drop &= qm.piece[qm.quads[:, 0]] > 0
+    if drop.any():
+        hm = keep_columns(hm, qm.quads, ~drop)
+        q = hex_quality(hm.points, hm.hexes)
     s = summary(q, hm.ring)
     s["self_intersections"] = boundary_crossings(hm.points, hm.hexes)
-    return Attempt(name, hm, q, s, fidelity(hm, surface, cm.label_ml), domain, cm, surface, fp, qm.finer_pieces)
+    finer = np.unique(qm.piece[qm.quads[~drop, 0]])
+    return Attempt(name, hm, q, s, fidelity(hm, surface, cm.label_ml), domain, cm, surface, fp, int((finer > 0).sum()))
 
 
 def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOptions()) -> CartilageMesh:
@@ -317,7 +327,25 @@ def blend_cartilage(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOpti
     The report gains ``fused_fraction`` and ``blend`` (what was done, the quality after it per ring,
     self-intersections, bone penetration, ``passed``). A blend that misses its targets, or fails,
     leaves the unblended mesh in place and says why; the gate figures stay those before blending.
+    Where the pieces on finer lattices stand in the way (a blend that misses its targets with them
+    and meets them without), they are left out, and the fidelity figures are measured again.
     """
+    out = _blend_checked(cm, bone, opts)
+    pieces = cm.mesh.node_piece > 0
+    if out.facts["blend"]["applied"] or not pieces.any():
+        return out
+    quads = cm.mesh.hexes[cm.mesh.layer == 0][:, :4]
+    main = keep_columns(cm.mesh, quads, cm.mesh.node_piece[quads[:, 0]] == 0)
+    q = hex_quality(main.points, main.hexes)
+    f = fidelity(main, cm.surface, cm.facts["label_volume_ml"])
+    s = {**summary(q, main.ring), "self_intersections": boundary_crossings(main.points, main.hexes)}
+    facts = {**cm.facts, **s, **f, "finer_pieces": 0, "finer_pieces_left_out": int(len(np.unique(cm.mesh.node_piece[pieces]))),
+             "gate_passed": passes_gate(s), "usable": usable(s), "fidelity_passed": passes_fidelity(f)}
+    without = _blend_checked(CartilageMesh(main, q, facts, cm.surface), bone, opts)
+    return without if without.facts["blend"]["applied"] else out
+
+
+def _blend_checked(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOptions) -> CartilageMesh:
     t0 = time.perf_counter()
     try:
         hm, done = blend(cm.mesh, bone, opts)

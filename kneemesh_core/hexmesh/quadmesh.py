@@ -13,8 +13,9 @@
    holes (full-thickness defects) get their own ring facing inwards.
 4. Coordinate ascent on the worst quad around each node smooths the
    transition (contour nodes slide along the contour).
-5. A piece of the footprint where no lattice cell fits (a fragment of cartilage
-   between denuded areas) is meshed the same way on its own finer lattice.
+5. What the lattice and its ring leave of the footprint (a fragment of cartilage
+   between denuded areas, a tip or tail narrower than two elements) is meshed the
+   same way, in pieces, each on its own finer lattice.
 """
 
 from __future__ import annotations
@@ -45,14 +46,38 @@ class QuadMesh:
     quads : (Q, 4) node indices, counter-clockwise in (s, t).
     contour : (P,) bool, nodes on the footprint contour.
     ring : (Q,) int, 0 for the pillow ring, 1 for the quads next to it, ...
-    finer_pieces : how many pieces of the footprint have a finer lattice of their own.
+    pieces : the footprints meshed apart (the whole, then each piece on a finer lattice).
+    piece : (P,) int, the one of ``pieces`` each node belongs to.
     """
 
     points: np.ndarray
     quads: np.ndarray
     contour: np.ndarray
     ring: np.ndarray
-    finer_pieces: int = 0  # pieces of the footprint meshed on a finer lattice of their own
+    pieces: tuple[Footprint, ...]
+    piece: np.ndarray
+
+    @property
+    def finer_pieces(self) -> int:
+        """How many pieces of the footprint have a finer lattice of their own."""
+        return len(np.unique(self.piece[self.piece > 0]))
+
+    def sdf(self, st: np.ndarray, nodes: np.ndarray | None = None) -> np.ndarray:
+        """(N,) signed distance, mm, of positions st (N, 2) of the nodes flagged ``nodes`` (P,) bool
+        (default: every node), each to the contour of the node's own piece."""
+        return self._per_piece(st, nodes, (), lambda fp, x: fp.sample(fp.sdf, x))
+
+    def sdf_gradient(self, st: np.ndarray, nodes: np.ndarray | None = None) -> np.ndarray:
+        """(N, 2) gradient of :meth:`sdf`."""
+        return self._per_piece(st, nodes, (2,), lambda fp, x: fp.gradient(x))
+
+    def _per_piece(self, st: np.ndarray, nodes: np.ndarray | None, shape: tuple, f) -> np.ndarray:
+        piece = self.piece if nodes is None else self.piece[nodes]
+        out = np.zeros((len(st),) + shape)
+        for k in np.unique(piece):
+            on = piece == k
+            out[on] = f(self.pieces[k], st[on])
+        return out
 
 
 def quad_edges(quads: np.ndarray, unique: bool = True) -> np.ndarray:
@@ -139,25 +164,32 @@ def _root_along(fp: Footprint, p: np.ndarray, d: np.ndarray, reach: float, back:
     return np.where(bracketed, t, np.where(f_hi < 0, reach, -reach if back else 0.0))
 
 
-#: A piece of the footprint that holds no element of the lattice (a fragment of cartilage between
-#: denuded areas, smaller or narrower than two elements) is meshed on its own lattice this many times
-#: finer, the first that holds one.
+#: What the lattice leaves of the footprint (a fragment of cartilage between denuded areas, a tip or
+#: a tail narrower than two elements) is meshed on a lattice of its own this many times finer, the
+#: first that holds an element ...
 FINER = (2, 4)
+#: ... where that piece is at least this many elements in area (smaller: slivers along the contour).
+MIN_PIECE_ELEMENTS = 1.0
+#: A gap of this many grid steps of the footprint separates such a piece from the mesh beside it,
+#: so that the two never overlap.
+PIECE_GAP_STEPS = 2
 
 
 def quad_mesh(fp: Footprint, h: float, *, inset: float = 0.5) -> QuadMesh:
-    """Quad mesh of a footprint with element size ``h`` (mm); see the module notes.  Pieces of the
-    footprint that the lattice leaves empty get their own finer lattice (:data:`FINER`): they share
-    no node with the rest, so the element size may change from piece to piece."""
-    pieces, n = ndi.label(fp.inside)
+    """Quad mesh of a footprint with element size ``h`` (mm); see the module notes.  What the lattice
+    and its ring leave of the footprint (of its finer-smoothed contour, ``fp.fine``) is meshed in
+    pieces on finer lattices (:data:`FINER`): they share no node with the rest, so the element size
+    may change from piece to piece."""
     meshes = []
-    held: set[int] = set()
     main = _lattice_mesh(fp, h, inset)
+    covered = np.zeros_like(fp.inside)
     if main is not None:
         meshes.append(main)
-        lattice_nodes = np.clip(fp.grid.index(main.points[~main.contour]).round().astype(int), 0, np.array(pieces.shape) - 1)
-        held = set(np.unique(pieces[lattice_nodes[:, 0], lattice_nodes[:, 1]]).tolist())
-    for k in sorted(set(range(1, n + 1)) - held):
+        covered = ndi.binary_dilation(_covered(main, fp), iterations=PIECE_GAP_STEPS)
+    pieces, n = ndi.label(fp.fine & ~covered)
+    area = np.bincount(pieces.ravel(), minlength=n + 1) * fp.grid.step**2
+    area[0] = 0.0  # the background
+    for k in np.flatnonzero(area >= MIN_PIECE_ELEMENTS * h * h):
         piece = fp.only(pieces == k)
         for factor in FINER:
             qm = _lattice_mesh(piece, h / factor, inset)
@@ -169,7 +201,28 @@ def quad_mesh(fp: Footprint, h: float, *, inset: float = 0.5) -> QuadMesh:
     offsets = np.cumsum([0] + [len(m.points) for m in meshes[:-1]])
     return QuadMesh(np.vstack([m.points for m in meshes]), np.vstack([m.quads + o for m, o in zip(meshes, offsets)]),
                     np.concatenate([m.contour for m in meshes]), np.concatenate([m.ring for m in meshes]),
-                    len(meshes) - (main is not None))
+                    (fp,) + tuple(m.pieces[0] for m in meshes[main is not None:]),
+                    np.concatenate([np.full(len(m.points), k + (main is None)) for k, m in enumerate(meshes)]))
+
+
+def _covered(qm: QuadMesh, fp: Footprint) -> np.ndarray:
+    """The footprint's grid points (ns, nt) bool inside a quad mesh: the even-odd rule over the
+    mesh's boundary edges, one grid row at a time (holes come out as holes)."""
+    e = quad_edges(qm.quads, unique=False)
+    _, inverse, count = np.unique(np.sort(e, 1), axis=0, return_inverse=True, return_counts=True)
+    b = e[count[inverse.ravel()] == 1]
+    p = fp.grid.index(qm.points)
+    a, c = p[b[:, 0]], p[b[:, 1]]
+    ns, nt = fp.inside.shape
+    rows = np.arange(ns, dtype=float)[:, None]
+    crosses = (np.minimum(a[:, 0], c[:, 0]) <= rows) & (rows < np.maximum(a[:, 0], c[:, 0]))
+    ds = np.where(c[:, 0] != a[:, 0], c[:, 0] - a[:, 0], 1.0)
+    at = a[:, 1] + (rows - a[:, 0]) / ds * (c[:, 1] - a[:, 1])  # (ns, E) column of each crossing
+    cols = np.arange(nt)
+    out = np.zeros((ns, nt), bool)
+    for i in np.flatnonzero(crosses.any(1)):
+        out[i] = np.searchsorted(np.sort(at[i, crosses[i]]), cols, side="right") % 2 == 1
+    return out
 
 
 def _lattice_mesh(fp: Footprint, h: float, inset: float) -> QuadMesh | None:
@@ -227,7 +280,7 @@ def _lattice_mesh(fp: Footprint, h: float, inset: float) -> QuadMesh | None:
     on_poly_all = np.full(len(points), -1)
     on_poly_all[n0:] = on_poly
     points = _optimise(points, quads, contour, h, on_poly_all, polys)
-    return QuadMesh(points, quads, contour, _rings(quads, len(quads) - len(pillow)))
+    return QuadMesh(points, quads, contour, _rings(quads, len(quads) - len(pillow)), (fp,), np.zeros(len(points), int))
 
 
 def _contour_polylines(fp: Footprint) -> list[np.ndarray]:

@@ -7,7 +7,7 @@ import pyvista as pv
 
 from kneemesh_core.hexmesh.targets import (MAX_EDGE_RATIO, MAX_FRAC_EDGE_RATIO, MIN_SCALED_JACOBIAN, USABLE_FRAC_BELOW,
                                            USABLE_FRAC_EDGE_RATIO, USABLE_MIN_SCALED_JACOBIAN)
-from kneemesh_core.surfaces.metrics import crossing_edges
+from kneemesh_core.surfaces.metrics import crossing_edges, crossings
 
 #: The 12 edges of a VTK / C3D8 hexahedron.
 HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]])
@@ -64,6 +64,14 @@ def boundary_crossings(points: np.ndarray, hexes: np.ndarray) -> int:
     whose elements are all fine can still fold over itself (two stretches of the cartilage edge
     projected onto overlapping bone), which no element metric sees."""
     return crossing_edges(boundary_surface(to_grid(points, hexes)))
+
+
+def crossing_nodes(points: np.ndarray, hexes: np.ndarray) -> np.ndarray:
+    """The nodes (indices into ``points``) of the boundary edges and faces that cross, as
+    :func:`boundary_crossings` counts them."""
+    surf = boundary_surface(to_grid(points, hexes))
+    edges, tris = crossings(surf)
+    return np.unique(np.asarray(surf.point_data["vtkOriginalPointIds"])[np.concatenate([edges.ravel(), tris.ravel()])])
 
 
 def boundary_surface(grid: pv.UnstructuredGrid) -> pv.PolyData:

@@ -41,6 +41,12 @@ def crossing_edges(surf: pv.PolyData) -> int:
     self-intersection always has one), by casting every edge as an Embree ray. Used for
     hexahedral boundaries, where counts of intersecting triangles from pymeshfix also flag
     vertices that merely touch."""
+    return len(crossings(surf)[0])
+
+
+def crossings(surf: pv.PolyData) -> tuple[np.ndarray, np.ndarray]:
+    """The crossings of :func:`crossing_edges`: the crossing edges' end points (E, 2) and, for
+    each, the points (E, 3) of one triangle it passes through (point indices of ``surf``)."""
     import trimesh
 
     f = surf.faces.reshape(-1, 4)[:, 1:]
@@ -53,7 +59,8 @@ def crossing_edges(surf: pv.PolyData) -> int:
     along = np.linalg.norm(loc - p[e[ray, 0]], axis=1)
     inside = (along > 1e-6 * length[ray]) & (along < length[ray] * (1 - 1e-6))
     own = (f[tri] == e[ray, 0:1]).any(1) | (f[tri] == e[ray, 1:2]).any(1)
-    return int(len(np.unique(ray[inside & ~own])))
+    hit, first = np.unique(ray[inside & ~own], return_index=True)
+    return e[hit], f[tri[inside & ~own][first]]
 
 
 def signed_distance(points: np.ndarray, surface: pv.PolyData,
