@@ -23,7 +23,7 @@ from kneemesh_core.hexmesh.extrude import HexMesh, extrude, keep_columns
 from kneemesh_core.hexmesh.fidelity import fidelity, fidelity_checks, passes_fidelity, short_of_footprint
 from kneemesh_core.hexmesh.footprint import Footprint, find_footprint
 from kneemesh_core.hexmesh.quadmesh import quad_mesh
-from kneemesh_core.hexmesh.quality import boundary_crossings, hex_quality, passes_gate, summary, to_grid, usable
+from kneemesh_core.hexmesh.quality import boundary_crossings, crossing_nodes, hex_quality, passes_gate, summary, to_grid, usable
 from kneemesh_core.hexmesh.rays import height_field
 from kneemesh_core.hexmesh.targets import (BLEND_FRAC_GOOD, BLEND_MIN_SCALED_JACOBIAN, FUSED_TOL_MM,
                                            MAX_ATTEMPT_VOLUME_ERROR, MAX_EDGE_RATIO, MIN_SCALED_JACOBIAN)
@@ -241,12 +241,18 @@ def _attempt(name: str, labels: sitk.Image, tissue: str, opts: HexOptions, h: fl
     fp, qm = _quads(hf, domain, opts, h, cache)
     hm = extrude(qm, fp, domain, opts.layers, surface, h, probe_mm=opts.probe_inset * h)
     q = hex_quality(hm.points, hm.hexes)
-    # the pieces on finer lattices (tips, tails, fragments) are there for coverage: a column of
-    # theirs with an element short of the gate is left out, and never costs the cartilage its mesh
+    # the pieces on finer lattices (tips, tails, fragments) are there for coverage and never cost the
+    # cartilage its mesh: a column of theirs with an element short of the gate is left out, and a
+    # piece whose boundary crosses the rest (0.5 mm apart at the bone, their columns can lean into
+    # each other over a curved bone) is left out whole
     short = (q["scaled_jacobian"] < MIN_SCALED_JACOBIAN) | (q["max_edge_ratio"] > MAX_EDGE_RATIO)
     drop = np.zeros(len(qm.quads), bool)
     np.logical_or.at(drop, np.arange(len(hm.hexes)) % len(qm.quads), short)
-    drop &= qm.piece[qm.quads[:, 0]] > 0
+    quad_piece = qm.piece[qm.quads[:, 0]]
+    if (quad_piece > 0).any():
+        crossing = np.unique(qm.piece[crossing_nodes(hm.points, hm.hexes) % len(qm.points)])
+        drop |= np.isin(quad_piece, crossing[crossing > 0])
+    drop &= quad_piece > 0
     if drop.any():
         hm = keep_columns(hm, qm.quads, ~drop)
         q = hex_quality(hm.points, hm.hexes)
