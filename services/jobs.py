@@ -13,6 +13,7 @@ import dataclasses
 import datetime as dt
 import hashlib
 import json
+import os
 import time
 import uuid
 from pathlib import Path
@@ -34,6 +35,10 @@ def _next_ns() -> int:
     global _last_ns
     _last_ns = max(time.time_ns(), _last_ns + 1)
     return _last_ns
+
+
+#: How long (s) a claimed Idempotency-Key may wait for its job before a repeat takes the claim over.
+KEY_CLAIM_S = 600.0
 
 
 @dataclasses.dataclass
@@ -138,10 +143,33 @@ class Jobs:
     def by_key(self, owner: str, key: str) -> JobRecord | None:
         """The live job this owner already created with ``key`` (an ``Idempotency-Key``), if any."""
         try:
-            rec = self.get(json.loads(self._key_file(owner, key).read_text())["job"])
+            job_id = json.loads(self._key_file(owner, key).read_text())["job"]
         except (FileNotFoundError, json.JSONDecodeError, KeyError):
             return None
+        rec = self.get(job_id) if job_id else None  # None: claimed, its job not yet recorded
         return rec if rec is not None and not rec.deleted else None
+
+    def claim_key(self, owner: str, key: str) -> bool:
+        """Reserve ``key`` for the one request that may create its job (True), before the upload is
+        accepted: a repeat that arrives while the first is still being accepted (a client killed
+        mid-upload and started again) must not queue a second job.  False while another request
+        holds it; a claim older than :data:`KEY_CLAIM_S` (a server that died holding it) is taken over."""
+        path = self._key_file(owner, key)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            if time.time() - path.stat().st_mtime < KEY_CLAIM_S:
+                return False
+            path.unlink(missing_ok=True)
+            return self.claim_key(owner, key)
+        with os.fdopen(fd, "w") as fh:
+            json.dump({"job": None, "claimed_at": utc_now()}, fh)
+        return True
+
+    def release_key(self, owner: str, key: str) -> None:
+        """Give up a claim whose submission was refused, so that a corrected repeat may go ahead."""
+        self._key_file(owner, key).unlink(missing_ok=True)
 
     def remember_key(self, owner: str, key: str, job_id: str) -> None:
         atomic_write_json(self._key_file(owner, key), {"job": job_id, "created_at": utc_now()})

@@ -94,3 +94,24 @@ def test_cleanup_command_removes_expired_jobs(tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "removed 1 job" in r.stdout, r.stderr
     assert jobs.get(rec.id) is None
+
+
+def test_an_idempotency_key_is_claimed_once_before_its_job_exists(tmp_path):
+    """A client killed mid-upload and started again repeats its submission while the first is still
+    being accepted: the key is claimed before the upload is read, so the repeat cannot claim it and
+    finds no job yet (the route waits for it); a refused submission gives the claim back; a claim a
+    dead server left behind is taken over once it is older than KEY_CLAIM_S."""
+    import services.jobs as jobs_module
+
+    jobs = Jobs(FileStore(tmp_path / "root"))
+    assert jobs.claim_key("lab-a", "cohort:knee-1")
+    assert not jobs.claim_key("lab-a", "cohort:knee-1") and jobs.by_key("lab-a", "cohort:knee-1") is None
+    assert jobs.claim_key("lab-b", "cohort:knee-1")  # another owner's key is another key
+    rec = jobs.create("lab-a", "knee.nrrd", "labels", JobOptions())
+    jobs.remember_key("lab-a", "cohort:knee-1", rec.id)
+    assert jobs.by_key("lab-a", "cohort:knee-1").id == rec.id and not jobs.claim_key("lab-a", "cohort:knee-1")
+    jobs.release_key("lab-b", "cohort:knee-1")
+    assert jobs.claim_key("lab-b", "cohort:knee-1")
+    old = jobs._key_file("lab-b", "cohort:knee-1")
+    os.utime(old, (old.stat().st_mtime - jobs_module.KEY_CLAIM_S - 1,) * 2)
+    assert jobs.claim_key("lab-b", "cohort:knee-1")

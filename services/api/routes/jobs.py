@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import asyncio
+import time
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, Header, Request, UploadFile
 
 from kneemesh_core.job import JobRequest
 from services.api import deps, schemas
-from services.api.errors import ERRORS
+from services.api.errors import ERRORS, ApiError
 from services.api.metrics import Metrics
 from services.api.uploads import accept, enqueue
 from services.api.views import job_created, job_status, job_summary
@@ -28,13 +30,36 @@ async def create_job(request: Request, file: Annotated[UploadFile, File(descript
                                      "instead of queueing a second one (a client that crashed before recording "
                                      "the answer can safely submit again).")] = None):
     """Upload one knee and queue its job; the input is validated first, and a bad one queues nothing."""
-    if idempotency_key and (known := jobs.by_key(who, idempotency_key)) is not None:
+    if idempotency_key and (known := await _claim_or_known(jobs, who, idempotency_key)) is not None:
         return job_created(request, jobs, known)
-    rec = await accept(jobs, metrics, file, options, who, None)
-    enqueue(jobs, metrics, runner, rec)
+    try:
+        rec = await accept(jobs, metrics, file, options, who, None)
+        enqueue(jobs, metrics, runner, rec)
+    except BaseException:
+        if idempotency_key:
+            jobs.release_key(who, idempotency_key)
+        raise
     if idempotency_key:
         jobs.remember_key(who, idempotency_key, rec.id)
     return job_created(request, jobs, rec)
+
+
+#: How long (s) a repeated submission waits for the first one with its Idempotency-Key to be accepted.
+KEY_WAIT_S = 60.0
+
+
+async def _claim_or_known(jobs: Jobs, who: str, key: str) -> JobRecord | None:
+    """The job already created with ``key``, or None once this request holds the key's claim; while
+    another request holds it, wait for its job (its upload is still being accepted)."""
+    deadline = time.monotonic() + KEY_WAIT_S
+    while time.monotonic() < deadline:
+        if (known := jobs.by_key(who, key)) is not None:
+            return known
+        if jobs.claim_key(who, key):
+            return None
+        await asyncio.sleep(0.2)
+    raise ApiError(503, "submission_in_progress", "a submission with this Idempotency-Key is still being accepted; "
+                   "try again shortly (the same key returns its job).")
 
 
 @router.get("", response_model=schemas.JobList)
