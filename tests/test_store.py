@@ -8,21 +8,27 @@ import os
 
 import pytest
 
-from kneemesh_core.job import ANATOMY, BUNDLE, CONFORM, DECKS, INGEST, REPORT, SIMULATE, JobOptions, bundle, plan
+from kneemesh_core.job import (ANATOMY, BUNDLE, CONFORM, DECKS, HEX_STEPS, INGEST, REPORT, SIMULATE, JobOptions, bundle,
+                               plan)
+from kneemesh_core.tissues import CARTILAGES
 from services.jobs import Jobs
 from services.store import FileStore
 
 
-def test_plan_stages_bones_before_cartilage():
+def test_plan_meshes_cartilage_beside_the_bones_and_blends_it_after():
     stages = plan(JobOptions(bundle=True))
     assert stages[0] == (INGEST,) and stages[-4:] == [(CONFORM,), (DECKS,), (REPORT,), (BUNDLE,)]
     assert plan(JobOptions(simulate="smoke"))[-3:] == [(DECKS,), (SIMULATE,), (REPORT,)]
-    assert set(stages[1]) == {"femur", "tibia", "patella"} and stages[1][0] == "femur"
-    # the anatomy needs only the bones: it runs beside the cartilages, after the longest of them
+    # a cartilage's mesh needs only the labels: it is made beside the bones, the longest first
+    assert set(stages[1]) == {"femur", "tibia", "patella"} | {f"hex_{c}" for c in CARTILAGES}
+    assert stages[1][:2] == ("hex_femoral_cartilage", "femur")
+    assert set(HEX_STEPS) == {f"hex_{c}" for c in CARTILAGES}
+    # its blend needs its bone's mesh: after them, beside the anatomy (which needs only the bones)
     assert stages[2] == ("femoral_cartilage", ANATOMY, "medial_tibial_cartilage", "lateral_tibial_cartilage",
                          "patellar_cartilage")
     assert plan(JobOptions(only="bones")) == [(INGEST,), ("femur", "tibia", "patella"), (ANATOMY,), (REPORT,)]
-    assert ANATOMY not in sum(plan(JobOptions(only="cartilage")), ())  # the sites need the bone meshes
+    only = plan(JobOptions(only="cartilage"))
+    assert ANATOMY not in sum(only, ()) and only[1][0] == "hex_femoral_cartilage"  # the sites need the bone meshes
     assert CONFORM not in sum(plan(JobOptions(blend=None)), ())  # the bones give way only to fused cartilage
 
 

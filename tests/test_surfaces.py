@@ -132,3 +132,18 @@ def test_cli_mesh_bones_only_with_stl(tmp_path):
             assert key in e, key
         assert (tmp_path / "meshes" / f"{bone}.vtp").exists() and (tmp_path / "meshes" / f"{bone}.stl").exists()
     assert report["input"]["side"] == "right"
+
+
+def test_within_a_tolerance_of_a_surface_answers_as_the_exact_distance_does():
+    import pyvista as pv
+
+    from kneemesh_core.surfaces.metrics import distance_to_surface, within
+
+    box = pv.Box(bounds=(0, 20, 0, 10, 0, 4), level=2).triangulate()  # coarse triangles: centroids far from vertices
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-2, -2, -2], [22, 12, 6], size=(20000, 3))
+    exact = distance_to_surface(pts, box) <= 0.5
+    assert 0.05 < exact.mean() < 0.5  # both answers are common
+    assert np.array_equal(within(pts, box, 0.5), exact)
+    # a point 0.4 mm off the middle of a face is within 0.5 mm though 3.7 mm from the nearest vertex
+    assert within(np.array([[10.0, 5.0, 4.4], [10.0, 5.0, 4.6]]), box, 0.5).tolist() == [True, False]

@@ -9,7 +9,7 @@ from kneemesh_core.hexmesh.extrude import HexMesh
 from kneemesh_core.hexmesh.quality import boundary_surface, to_grid
 from kneemesh_core.hexmesh.targets import (COVERAGE_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM,
                                            MIN_COVERAGE, VOLUME_TOL)
-from kneemesh_core.surfaces.metrics import distance_to_surface
+from kneemesh_core.surfaces.metrics import distance_to_surface, within
 
 
 def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float) -> dict:
@@ -25,8 +25,8 @@ def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float) -> dict:
     outer = boundary_surface(grid)
     cells = surface.compute_cell_sizes(length=False, volume=False)
     area = np.asarray(cells.cell_data["Area"])
-    d = distance_to_surface(surface.cell_centers().points, outer)
-    coverage = float(area[d <= COVERAGE_TOL_MM].sum() / area.sum())
+    covered = within(np.asarray(surface.cell_centers().points, float), outer, COVERAGE_TOL_MM)
+    coverage = float(area[covered].sum() / area.sum())
     top = hm.node_layer == hm.node_layer.max()
     dev = distance_to_surface(hm.points[top], surface)
     return {

@@ -125,7 +125,10 @@ def _bone_centre(labels: sitk.Image, tissue: str) -> np.ndarray:
     if box is None:
         raise KneeMeshError("bone_missing", f"{tissue}: its bone ({BONE_OF[tissue]}) is not labelled; "
                             "the projection needs it to tell the bone side from the joint side.")
-    return voxel_to_lps(labels, (np.argwhere(bone[box])[::97] + [s.start for s in box])[:, ::-1]).mean(0)
+    # every 97th voxel in C order, as np.argwhere(...)[::97] lists them, at a third of its cost
+    inside = bone[box]
+    ijk = np.unravel_index(np.flatnonzero(inside)[::97], inside.shape)
+    return voxel_to_lps(labels, (np.stack(ijk, 1) + [s.start for s in box])[:, ::-1]).mean(0)
 
 
 def _domain(tissue: str, points: np.ndarray, bone_centre: np.ndarray):

@@ -13,6 +13,7 @@ import os
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pyvista as pv
 
 from kneemesh_core.io.files import TMP_PREFIX, atomic_path, atomic_write_json
@@ -29,6 +30,8 @@ MANIFEST_FILE = "artifacts.json"
 STEPS_DIR = "steps"
 MESHES_DIR = "meshes"
 SURFACES_DIR = "surfaces"
+#: What one step leaves for a later one and nobody else reads: a cartilage's unblended mesh
+WORK_DIR = "work"
 #: What the bundle carries: labels used, meshes, surfaces, attachment sites and frames, the decks and
 #: any simulation's results (not the solver's raw output), the report.
 BUNDLED = (LABELS_FILE, JOB_FILE, REPORT_FILE, ATTACHMENTS_FILE, ATTACHMENTS_FIGURE, f"{MESHES_DIR}/*", f"{SURFACES_DIR}/*",
@@ -44,6 +47,28 @@ def save_mesh(mesh: pv.DataSet, path: Path) -> None:
     """Write a mesh atomically; the format follows the suffix (.vtp, .vtu, .stl)."""
     with atomic_path(path) as tmp:
         mesh.save(tmp)
+
+
+def save_unblended(cm, path: Path) -> None:
+    """Keep a meshed cartilage before its blend (:class:`kneemesh_core.hexmesh.CartilageMesh`
+    without its surface, which the step writes to ``surfaces/``) for the step that blends it:
+    its mesh and quality arrays and its report entry, in one ``.npz``."""
+    arrays = {f"mesh.{k}": v for k, v in vars(cm.mesh).items()}
+    arrays.update({f"quality.{k}": v for k, v in cm.quality.items()})
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, facts=np.array(json.dumps(cm.facts)), **arrays)
+
+
+def load_unblended(path: Path, surface: pv.PolyData):
+    """The :class:`kneemesh_core.hexmesh.CartilageMesh` that :func:`save_unblended` kept, bit for bit,
+    with its ``surface``."""
+    from kneemesh_core.hexmesh import CartilageMesh
+    from kneemesh_core.hexmesh.extrude import HexMesh
+
+    with np.load(path) as z:
+        part = {prefix: {k.split(".", 1)[1]: z[k] for k in z.files if k.startswith(prefix + ".")}
+                for prefix in ("mesh", "quality")}
+        return CartilageMesh(HexMesh(**part["mesh"]), part["quality"], json.loads(str(z["facts"])), surface)
 
 
 def read_json(path: Path) -> dict:

@@ -24,10 +24,16 @@ from kneemesh_core.io.files import atomic_path
 from kneemesh_core.job.options import INPUT_TYPES, JobOptions
 from kneemesh_core.job.verdict import tissue_verdict
 from kneemesh_core.job.outputs import (ATTACHMENTS_FIGURE, ATTACHMENTS_FILE, JOB_FILE, LABELS_FILE, MESHES_DIR,
-                                       SURFACES_DIR, read_json, save_mesh, write_json)
+                                       SURFACES_DIR, WORK_DIR, load_unblended, read_json, read_step, save_mesh,
+                                       save_unblended, write_json)
 from kneemesh_core.knee import canonicalise, describe, describe_image
 from kneemesh_core.surfaces.tissue import reconstruct_bone
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, LABEL, resolve_convention
+
+
+def hex_step(cartilage: str) -> str:
+    """The name of the step that meshes a cartilage before the cartilage's own step blends it."""
+    return f"hex_{cartilage}"
 
 
 def ingest(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: JobOptions) -> dict:
@@ -83,48 +89,80 @@ def segment_input(input_path: str | os.PathLike, out_dir: str | os.PathLike, opt
 def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
     """Mesh one tissue of an ingested job; returns its report entry, never raises.
 
-    A bone is a closed shell (``meshes/<bone>.vtp``, and ``.stl`` on request); a cartilage
-    an all-hex mesh (``meshes/<cartilage>.vtu``; ``.rejected.vtu`` when no attempt is usable for FE)
-    blended and fused onto the bone mesh its bone's step wrote, and its surface
-    (``surfaces/<cartilage>.vtp``).
+    A bone is a closed shell (``meshes/<bone>.vtp``, and ``.stl`` on request).  A cartilage is
+    meshed first by its :func:`hex_cartilage` step; here its all-hex mesh is blended and fused
+    onto the bone mesh its bone's step wrote and kept as ``meshes/<cartilage>.vtu``
+    (``.rejected.vtu`` when no attempt is usable for FE).
     """
+    opts = JobOptions.from_dict(options)
+    out = Path(out_dir)
+    folder = out / MESHES_DIR
+
+    def bone() -> dict:
+        labels = read_label_map(out / LABELS_FILE).image
+        folder.mkdir(exist_ok=True)
+        mesh, facts = reconstruct_bone(labels, tissue, opts.surface)
+        files = [folder / f"{tissue}.vtp"] + ([folder / f"{tissue}.stl"] if opts.stl else [])
+        for f in files:
+            save_mesh(mesh, f)
+        entry = {"status": "ok", **facts}
+        entry["status"], entry["reasons"] = tissue_verdict(True, entry)
+        entry["files"] = [str(f.relative_to(out)) for f in files]
+        return entry
+
+    if tissue in BONES:
+        return _guarded(bone)  # a failed tissue never sinks the rest of the knee
+    meshed = read_step(out, hex_step(tissue))
+    if meshed is None or meshed["state"] != "done":
+        return {"status": "failed", "code": "internal", "reason": f"the step {hex_step(tissue)} has not run.", "seconds": 0.0}
+    if meshed["result"]["status"] == "failed":  # no mesh at all: its entry says why
+        return meshed["result"]
+
+    def cartilage() -> dict:
+        surface_file = out / SURFACES_DIR / f"{tissue}.vtp"
+        cm = load_unblended(out / WORK_DIR / f"{tissue}.npz", pv.read(surface_file))
+        ships = cm.facts["gate_passed"] or cm.facts["usable"]  # short of the gate but usable: for review
+        if ships and opts.blend is not None:  # the bone stage ran first: fuse onto the bone mesh it wrote
+            bone_file = folder / f"{BONE_OF[tissue]}.vtp"
+            cm = blend_cartilage(cm, pv.read(bone_file) if bone_file.exists() else None, opts.blend)
+        facts = shipped_figures(cm)
+        files = [folder / f"{tissue}{'' if ships else '.rejected'}.vtu", surface_file]
+        folder.mkdir(exist_ok=True)
+        save_mesh(cm.grid(), files[0])
+        entry = {"status": "ok" if ships else "failed", **facts}
+        entry["status"], entry["reasons"] = tissue_verdict(False, entry) if ships else ("failed", [])
+        if not ships:
+            entry["code"] = "quality_gate"
+            entry["reason"] = (f"no usable mesh after {len(facts['attempts'])} attempts: min scaled Jacobian "
+                               f"{facts['min_scaled_jacobian']}, {facts['frac_sj_below_0_5']:.3%} below 0.5, "
+                               f"{facts['inverted']} inverted, {facts['frac_edge_ratio_above_6']:.4%} with edge ratio > 6, "
+                               f"{facts['self_intersections']} boundary edges crossing; best mesh kept as {files[0].name}")
+        entry["files"] = [str(f.relative_to(out)) for f in files]
+        return entry
+
+    entry = _guarded(cartilage)
+    entry["seconds"] = round(entry["seconds"] + meshed["result"]["seconds"], 3)  # its meshing's and its blend's
+    return entry
+
+
+def hex_cartilage(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
+    """The all-hex mesh of one cartilage before its blend (:func:`kneemesh_core.hexmesh.mesh_cartilage`):
+    it needs only the labels, so it runs beside the bones, and the cartilage's own step blends it
+    onto its bone.  Writes the reconstructed surface it was meshed from (``surfaces/<cartilage>.vtp``)
+    and the unblended mesh (``work/<cartilage>.npz``); returns what the attempts gave, or the
+    cartilage's failed entry (never raises)."""
     opts = JobOptions.from_dict(options)
     out = Path(out_dir)
 
     def work() -> dict:
-        labels = read_label_map(out / LABELS_FILE).image
-        folder = out / MESHES_DIR
-        folder.mkdir(exist_ok=True)
-        if tissue in BONES:
-            mesh, facts = reconstruct_bone(labels, tissue, opts.surface)
-            files = [folder / f"{tissue}.vtp"] + ([folder / f"{tissue}.stl"] if opts.stl else [])
-            for f in files:
-                save_mesh(mesh, f)
-            entry = {"status": "ok", **facts}
-            entry["status"], entry["reasons"] = tissue_verdict(True, entry)
-        else:
-            cm = mesh_cartilage(labels, tissue, opts.hex)
-            ships = cm.facts["gate_passed"] or cm.facts["usable"]  # short of the gate but usable: for review
-            if ships and opts.blend is not None:  # the bone stage ran first: fuse onto the bone mesh it wrote
-                bone_file = folder / f"{BONE_OF[tissue]}.vtp"
-                cm = blend_cartilage(cm, pv.read(bone_file) if bone_file.exists() else None, opts.blend)
-            facts = shipped_figures(cm)
-            (out / SURFACES_DIR).mkdir(exist_ok=True)
-            files = [folder / f"{tissue}{'' if ships else '.rejected'}.vtu", out / SURFACES_DIR / f"{tissue}.vtp"]
-            save_mesh(cm.grid(), files[0])
-            save_mesh(cm.surface, files[1])
-            entry = {"status": "ok" if ships else "failed", **facts}
-            entry["status"], entry["reasons"] = tissue_verdict(False, entry) if ships else ("failed", [])
-            if not ships:
-                entry["code"] = "quality_gate"
-                entry["reason"] = (f"no usable mesh after {len(facts['attempts'])} attempts: min scaled Jacobian "
-                                   f"{facts['min_scaled_jacobian']}, {facts['frac_sj_below_0_5']:.3%} below 0.5, "
-                                   f"{facts['inverted']} inverted, {facts['frac_edge_ratio_above_6']:.4%} with edge ratio > 6, "
-                                   f"{facts['self_intersections']} boundary edges crossing; best mesh kept as {files[0].name}")
-        entry["files"] = [str(f.relative_to(out)) for f in files]
-        return entry
+        cm = mesh_cartilage(read_label_map(out / LABELS_FILE).image, tissue, opts.hex)
+        for sub in (SURFACES_DIR, WORK_DIR):
+            (out / sub).mkdir(exist_ok=True)
+        save_mesh(cm.surface, out / SURFACES_DIR / f"{tissue}.vtp")
+        save_unblended(cm, out / WORK_DIR / f"{tissue}.npz")
+        return {"status": "done", **{k: cm.facts[k] for k in ("gate_passed", "usable", "fidelity_passed", "attempts")}}
 
-    return _guarded(work)  # a failed tissue never sinks the rest of the knee
+    return _guarded(work)
 
 
 def shipped_figures(cm: CartilageMesh) -> dict:

@@ -35,8 +35,10 @@ class JobCreated(BaseModel):
 
 
 class StepProgress(BaseModel):
-    step: str = Field(description="ingest, segment, a tissue name, conform, anatomy, report or bundle.")
-    kind: str = Field(description="ingest, segment, bone, cartilage, conform, anatomy, report or bundle.")
+    step: str = Field(description="ingest, segment, a tissue name, hex_<cartilage>, conform, anatomy, decks, simulate, "
+                                  "report or bundle.")
+    kind: str = Field(description="ingest, segment, bone, hexmesh (a cartilage's mesh before its blend), cartilage, conform, "
+                                  "anatomy, decks, simulate, report or bundle.")
     stage: int = Field(description="Steps of one stage run in parallel; stages run in order.")
     state: StepState
     status: str | None = Field(None, description="A tissue's outcome: ok, or failed with `error`.")
