@@ -176,6 +176,12 @@ def test_pipeline_writes_vtu_in_physical_space(tmp_path, sample):
         assert entry["min_scaled_jacobian"] == pytest.approx(float(shipped.min()), abs=1e-4)
         assert entry["n_elements"] == len(shipped) and entry["gate"]["gate_passed"]
         assert entry["gate"]["min_scaled_jacobian"] >= 0.5
+    # the fidelity figures of the blended file that ships, beside those the targets judge
+    blend = e["blend"]
+    assert blend["applied"] and set(blend["fidelity"]) == {"volume_ml", "volume_error", "coverage",
+                                                           "surface_deviation_mm", "passed"}
+    assert blend["fidelity"]["volume_ml"] == pytest.approx(g.volume / 1000, rel=1e-3)
+    assert 0.5 < blend["fidelity"]["coverage"] <= 1.0
     # physical LPS mm: the mesh sits on the lateral plate (right knee: lateral faces -x)
     mtc = pv.read(tmp_path / "meshes" / "medial_tibial_cartilage.vtu")
     assert g.center[0] < mtc.center[0]
