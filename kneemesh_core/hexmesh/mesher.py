@@ -20,7 +20,8 @@ from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.hexmesh.blend import BlendOptions, blend
 from kneemesh_core.hexmesh.domain import CylinderDomain, PlaneDomain
 from kneemesh_core.hexmesh.extrude import HexMesh, extrude, keep_columns
-from kneemesh_core.hexmesh.fidelity import fidelity, fidelity_checks, passes_fidelity, short_of_footprint
+from kneemesh_core.hexmesh.fidelity import (beyond_rim_checks, fidelity, fidelity_checks, passes_fidelity,
+                                            short_of_footprint)
 from kneemesh_core.hexmesh.footprint import Footprint, find_footprint
 from kneemesh_core.hexmesh.quadmesh import quad_mesh
 from kneemesh_core.hexmesh.quality import boundary_crossings, crossing_nodes, hex_quality, passes_gate, summary, to_grid, usable
@@ -394,11 +395,13 @@ def _blend_checked(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOptio
         report["applied"] = False
         report["reason"] = "blended mesh missed the quality targets; the unblended mesh is kept"
         return dataclasses.replace(cm, facts={**cm.facts, "fused_fraction": 0.0, "blend": report})
-    # the fidelity figures of the file that ships: the 45 deg edge reshapes the outer rings
-    # on purpose, so these are reported beside the meshing's, which the targets judge
-    shipped = fidelity(hm, cm.surface, cm.facts["label_volume_ml"])
+    # the fidelity figures of the file that ships; the 45 deg edge reshapes the outer rings on purpose, so
+    # the targets judge the mesh before the blend and, on the blended file, what lies beyond those rings
+    shipped = fidelity(hm, cm.surface, cm.facts["label_volume_ml"], unblended=cm.mesh, rings=opts.rings)
     report["fidelity"] = {**{k: shipped[k] for k in ("volume_ml", "volume_error", "coverage", "surface_deviation_mm")},
                           "passed": passes_fidelity(shipped)}
+    rim = shipped["beyond_rim"]
+    report["beyond_rim"] = {**rim, "passed": all(beyond_rim_checks(rim).values())}
     if not report["passed"]:
         report["reason"] = (f"nodes up to {penetration} mm inside the bone remain (unblended: {before} mm): "
                             "the bone mesh and the cartilage labels disagree there")

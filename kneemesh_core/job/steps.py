@@ -166,15 +166,23 @@ def hex_cartilage(out_dir: str | os.PathLike, tissue: str, options: dict) -> dic
 
 
 def shipped_figures(cm: CartilageMesh) -> dict:
-    """A cartilage's report figures with the headline quality of the mesh that ships (blended where
-    the blend was applied); the figures the gate judged, before blending, move under ``gate``."""
+    """A cartilage's report figures with the headline quality and fidelity of the mesh that ships
+    (blended where the blend was applied); the figures the gate and the fidelity targets judged,
+    before blending, move under ``gate``.  ``fidelity_passed`` is then the mesh before the blend
+    meeting every fidelity target and, where the blend was applied, the blended file meeting the
+    coverage and deviation targets beyond the rim the blend reshapes (``blend.beyond_rim``)."""
     facts = dict(cm.facts)
     quality_keys = ("n_elements", "min_scaled_jacobian", "frac_sj_below_0_5", "inverted", "collapsed", "max_edge_ratio",
                     "frac_edge_ratio_above_6", "shortest_edge_mm", "sj_by_ring", "self_intersections")
-    facts["gate"] = {k: facts[k] for k in (*quality_keys, "gate_passed") if k in facts}
+    fidelity_keys = ("volume_ml", "volume_error", "coverage", "surface_deviation_mm")
+    facts["gate"] = {k: facts[k] for k in (*quality_keys, "gate_passed", *fidelity_keys, "fidelity_passed") if k in facts}
+    blend = facts.get("blend", {})
     shipped = summary(cm.quality, cm.mesh.ring)
-    shipped["self_intersections"] = (facts["blend"]["self_intersections"] if facts.get("blend", {}).get("applied")
+    shipped["self_intersections"] = (blend["self_intersections"] if blend.get("applied")
                                      else boundary_crossings(cm.mesh.points, cm.mesh.hexes))
+    if blend.get("applied") and "fidelity" in blend:
+        shipped.update({k: blend["fidelity"][k] for k in fidelity_keys})
+        shipped["fidelity_passed"] = bool(facts.get("fidelity_passed") and blend["beyond_rim"]["passed"])
     facts.update(shipped)
     return facts
 
