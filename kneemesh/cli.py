@@ -166,6 +166,8 @@ def _run_job(input_path: Path, out_dir: Path, request: JobRequest, workers: int)
         if "n_elements" in e:  # hex cartilage
             quality = f"min SJ {e['min_scaled_jacobian']:.2f}, {e['frac_sj_below_0_5']:.2%} < 0.5"
             fid = f"cover {e['coverage']:.1%}, dev p95 {e['surface_deviation_mm']['p95']:.2f} mm"
+            if rim := e.get("blend", {}).get("beyond_rim"):  # the blended file; beyond the rim its blend reshapes
+                fid += f" (beyond the blended rim {rim['coverage']:.1%}, {rim['surface_deviation_mm']['p95']:.2f} mm)"
             count = str(e["n_elements"])
         else:  # bone shell
             closed = "closed, manifold" if e["watertight"] and e["manifold"] else "[red]open[/]"
