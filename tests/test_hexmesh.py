@@ -223,7 +223,7 @@ def test_a_hollow_or_unblended_cartilage_is_review_with_its_reasons_never_ok():
     # though the mesh before it met every target
     beyond = {"rings": 3, "coverage": 0.93, "surface_deviation_mm": {"median": 0.3, "p95": 0.9}, "passed": False}
     reshaped = tissue_verdict(False, {**good, "blend": {"passed": True, "applied": True, "beyond_rim": beyond}})
-    assert reshaped[0] == "review" and reshaped[1][0].startswith("the edge blend reaches beyond the 3 rings it reshapes")
+    assert reshaped[0] == "review" and reshaped[1][0].startswith("beyond the 3 rings of its edge that the blend reshapes, the blended file covers 93.0%")
     report = {"tissues": {"femoral_cartilage": {**hollow, "status": status, "reasons": reasons},
                           "tibia": {"status": "ok"}, "patella": {"status": "failed", "reason": "no patella"}}}
     verdict = knee_verdict(report)

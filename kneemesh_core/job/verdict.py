@@ -70,7 +70,7 @@ def cartilage_reasons(e: dict) -> list[str]:
     rim = (blend or {}).get("beyond_rim")
     if blend is not None and blend.get("applied") and rim is not None and not rim["passed"]:
         d = rim["surface_deviation_mm"]
-        out.append(f"the edge blend reaches beyond the {rim['rings']} rings it reshapes: beyond them the blended file "
+        out.append(f"beyond the {rim['rings']} rings of its edge that the blend reshapes, the blended file "
                    f"covers {rim['coverage']:.1%} of the cartilage (target {MIN_COVERAGE:.0%}) and its articular surface "
                    f"lies {d['median']} / {d['p95']} mm (median / p95) from the cartilage's "
                    f"(targets {MAX_DEVIATION_MEDIAN_MM} / {MAX_DEVIATION_P95_MM} mm)")
