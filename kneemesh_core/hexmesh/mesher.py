@@ -20,7 +20,7 @@ from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.hexmesh.blend import BlendOptions, blend
 from kneemesh_core.hexmesh.domain import CylinderDomain, PlaneDomain
 from kneemesh_core.hexmesh.extrude import HexMesh, extrude, keep_columns
-from kneemesh_core.hexmesh.fidelity import (beyond_rim_checks, fidelity, fidelity_checks, passes_fidelity,
+from kneemesh_core.hexmesh.fidelity import (FIGURES, beyond_rim_checks, fidelity, fidelity_checks, passes_fidelity,
                                             short_of_footprint)
 from kneemesh_core.hexmesh.footprint import Footprint, find_footprint
 from kneemesh_core.hexmesh.quadmesh import quad_mesh
@@ -398,8 +398,7 @@ def _blend_checked(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOptio
     # the fidelity figures of the file that ships; the 45 deg edge reshapes the outer rings on purpose, so
     # the targets judge the mesh before the blend and, on the blended file, what lies beyond those rings
     shipped = fidelity(hm, cm.surface, cm.facts["label_volume_ml"], unblended=cm.mesh, rings=opts.rings)
-    report["fidelity"] = {**{k: shipped[k] for k in ("volume_ml", "volume_error", "coverage", "surface_deviation_mm")},
-                          "passed": passes_fidelity(shipped)}
+    report["fidelity"] = {**{k: shipped[k] for k in FIGURES}, "passed": passes_fidelity(shipped)}
     rim = shipped["beyond_rim"]
     report["beyond_rim"] = {**rim, "passed": all(beyond_rim_checks(rim).values())}
     if not report["passed"]:

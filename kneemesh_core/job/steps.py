@@ -18,6 +18,7 @@ from kneemesh_core import __version__
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.hexmesh import CartilageMesh, blend_cartilage, mesh_cartilage
 from kneemesh_core.hexmesh.quality import boundary_crossings, summary
+from kneemesh_core.hexmesh.fidelity import FIGURES
 from kneemesh_core.hexmesh.conform import conform_bone
 from kneemesh_core.io import read_label_map, read_volume, voxel_to_lps, write_image
 from kneemesh_core.io.files import atomic_path
@@ -174,14 +175,13 @@ def shipped_figures(cm: CartilageMesh) -> dict:
     facts = dict(cm.facts)
     quality_keys = ("n_elements", "min_scaled_jacobian", "frac_sj_below_0_5", "inverted", "collapsed", "max_edge_ratio",
                     "frac_edge_ratio_above_6", "shortest_edge_mm", "sj_by_ring", "self_intersections")
-    fidelity_keys = ("volume_ml", "volume_error", "coverage", "surface_deviation_mm")
-    facts["gate"] = {k: facts[k] for k in (*quality_keys, "gate_passed", *fidelity_keys, "fidelity_passed") if k in facts}
+    facts["gate"] = {k: facts[k] for k in (*quality_keys, "gate_passed", *FIGURES, "fidelity_passed") if k in facts}
     blend = facts.get("blend", {})
     shipped = summary(cm.quality, cm.mesh.ring)
     shipped["self_intersections"] = (blend["self_intersections"] if blend.get("applied")
                                      else boundary_crossings(cm.mesh.points, cm.mesh.hexes))
     if blend.get("applied") and "fidelity" in blend:
-        shipped.update({k: blend["fidelity"][k] for k in fidelity_keys})
+        shipped.update({k: blend["fidelity"][k] for k in FIGURES})
         shipped["fidelity_passed"] = bool(facts.get("fidelity_passed") and blend["beyond_rim"]["passed"])
     facts.update(shipped)
     return facts

@@ -8,7 +8,7 @@ misses a fidelity or plausibility target; ``failed`` means there is no usable fi
 
 from __future__ import annotations
 
-from kneemesh_core.hexmesh.fidelity import fidelity_checks
+from kneemesh_core.hexmesh.fidelity import FIGURES, fidelity_checks
 from kneemesh_core.hexmesh.targets import (FUSED_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM, MAX_EDGE_RATIO,
                                            MAX_FRAC_EDGE_RATIO, MIN_COVERAGE, MIN_SCALED_JACOBIAN, USABLE_FRAC_BELOW,
                                            USABLE_FRAC_EDGE_RATIO, USABLE_MIN_SCALED_JACOBIAN, VOLUME_TOL)
@@ -54,7 +54,7 @@ def cartilage_reasons(e: dict) -> list[str]:
                    f"{MIN_SCALED_JACOBIAN}, at most {USABLE_FRAC_EDGE_RATIO:.0%} above the edge ratio)")
     # the fidelity targets judge the mesh before its edge blend (its figures under "gate" once the
     # headline figures are the shipped file's), and the blended file beyond the rim the blend reshapes
-    swept = {**e, **{k: v for k, v in gate.items() if k in ("coverage", "volume_error", "surface_deviation_mm")}}
+    swept = {**e, **{k: gate[k] for k in FIGURES if k in gate}}
     checks = fidelity_checks(swept)
     if not checks["coverage"]:
         out.append(f"covers {swept['coverage']:.1%} of the cartilage (target {MIN_COVERAGE:.0%})")
@@ -68,7 +68,7 @@ def cartilage_reasons(e: dict) -> list[str]:
     if blend is not None and not blend.get("passed"):
         out.append(f"edge blend: {blend.get('reason', 'missed its targets')}")
     rim = (blend or {}).get("beyond_rim")
-    if blend is not None and blend.get("applied") and rim is not None and not rim["passed"]:
+    if rim is not None and blend.get("applied") and not rim["passed"]:
         d = rim["surface_deviation_mm"]
         out.append(f"beyond the {rim['rings']} rings of its edge that the blend reshapes, the blended file "
                    f"covers {rim['coverage']:.1%} of the cartilage (target {MIN_COVERAGE:.0%}) and its articular surface "
