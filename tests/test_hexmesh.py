@@ -310,6 +310,24 @@ def test_a_tip_narrower_than_two_elements_is_meshed_on_a_finer_lattice_beside_th
     assert not plate_cover[idx[:, 0], idx[:, 1]].any()
 
 
+def test_a_run_of_partners_skips_the_long_excursion_of_the_contour_round_a_narrow_neck():
+    """A 20 x 10 mm plate whose contour runs, from the middle of its top edge, up a 2 mm wide strip
+    190 mm long and back (a neck the lattice leaves out, leading to the rest of the cartilage): a
+    run of pillow partners along the top edge, past the strip, down the side and along the bottom
+    must be matched to the contour beside each guess, the strip skipped.  (Centred on its middle
+    guess, the matching window held half the contour either way and cut the run: the partners past
+    the strip were pulled onto the strip's far side, and the pillow ring folded; phantom 30359 left
+    severity 3 FC.)"""
+    from kneemesh_core.hexmesh.quadmesh import _arc_point, _match_along
+
+    contour = np.array([[0, 0], [20, 0], [20, 10], [11, 10], [11, 200], [9, 200], [9, 10], [0, 10]], float)
+    guess = np.array([[x, 10.0] for x in (14, 13, 12, 11.2)] + [[x, 10.0] for x in np.arange(8.8, -0.1, -1.0)]
+                     + [[0.0, y] for y in np.arange(9.0, -0.1, -1.0)] + [[x, 0.0] for x in np.arange(1.0, 5.1)])
+    arc, rms = _match_along(contour, guess, 0.25, closed=False)
+    matched = _arc_point(contour, arc)
+    assert rms < 0.1 and np.linalg.norm(matched - guess, axis=1).max() < 0.3
+
+
 def test_keep_columns_leaves_out_whole_columns_and_keeps_the_nodes_layer_by_layer():
     """Two quads side by side, extruded in two layers: keeping the second quad's column keeps its two
     elements with their own corner coordinates, and drops the nodes only the first one used."""

@@ -337,14 +337,33 @@ def _match_along(poly: np.ndarray, guess: np.ndarray, min_step: float, closed: b
     samples = _arc_point(poly, u)
     d2 = ((guess[:, None, :] - samples[None]) ** 2).sum(-1)  # (m, M)
     m, n = d2.shape
-    # anchor: a closed loop starts at the guess closest to the contour, on its closest sample;
-    # a run is centred on its middle guess's closest sample (it may cross the polyline's seam)
-    a = int(np.argmin(d2.min(1))) if closed else 0
-    j0 = int(np.argmin(d2[a])) if closed else (int(np.argmin(d2[m // 2])) - n // 2) % n
-    d2 = np.roll(np.roll(d2, -a, axis=0), -j0, axis=1)
     s = max(int(round(min_step / delta)), 1)
     if m * s > n:
         s = max(n // m, 1)
+    if closed:
+        # a closed loop starts at the guess closest to the contour, on its closest sample
+        a = int(np.argmin(d2.min(1)))
+        anchors = [(a, int(np.argmin(d2[a])))]
+    else:
+        # a run takes a stretch of the contour that may cross the polyline's seam: it starts a little
+        # before its first guess's closest sample, or is centred on its middle guess's (a run that skips
+        # a long excursion of the contour, round a narrow neck its lattice left out, needs the first;
+        # a first guess off on the wrong stretch, the second)
+        slack = int(round(2.0 * min_step / delta))
+        anchors = [(0, (int(np.argmin(d2[0])) - slack) % n), (0, (int(np.argmin(d2[m // 2])) - n // 2) % n)]
+    best = None
+    for a, j0 in anchors:
+        idx, total = _monotone_path(np.roll(np.roll(d2, -a, axis=0), -j0, axis=1), s, closed)
+        if best is None or total < best[1]:
+            best = np.roll(u[(idx + j0) % n], a), total
+    return best[0], float(np.sqrt(best[1] / m))
+
+
+def _monotone_path(d2: np.ndarray, s: int, closed: bool) -> tuple[np.ndarray, float]:
+    """The least sum of d2 (m, n) over sample indices (m,) that rise by at least ``s`` from one
+    guess to the next (a closed loop starts on sample 0 and ends ``s`` before the end); the path
+    and its cost, by dynamic programming."""
+    m, n = d2.shape
     if closed:
         cost = np.full(n, np.inf)
         cost[0] = d2[0, 0]
@@ -362,13 +381,12 @@ def _match_along(poly: np.ndarray, guess: np.ndarray, min_step: float, closed: b
     if closed:
         cost[n - s + 1:] = np.inf  # the last guess stays a step before the anchor (the loop closes)
     j = int(np.argmin(cost))
-    total = cost[j]
+    total = float(cost[j])
     idx = np.empty(m, dtype=np.int64)
     for i in range(m - 1, -1, -1):
         idx[i] = j
         j = back[i, j]
-    arc = u[(idx + j0) % n]
-    return np.roll(arc, a), float(np.sqrt(total / m))
+    return idx, total
 
 
 def _runs(labels: np.ndarray) -> list[np.ndarray]:
