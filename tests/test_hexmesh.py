@@ -231,6 +231,36 @@ def test_a_hollow_or_unblended_cartilage_is_review_with_its_reasons_never_ok():
     assert any(r.startswith("femoral_cartilage: covers 62.0%") for r in verdict["reasons"])
 
 
+def _plate_on_bone(thickness_mm: float) -> sitk.Image:
+    """A flat medial tibial cartilage disc (radius 9 mm, ``thickness_mm`` thick) on a block of tibia,
+    0.25 mm voxels."""
+    sp = 0.25
+    z, y, x = np.mgrid[0:48, 0:100, 0:100] * sp
+    labels = np.where(z < 6, LABEL["tibia"], 0).astype(np.uint8)
+    labels[(z >= 6) & (z < 6 + thickness_mm) & (np.hypot(x - 12.5, y - 12.5) < 9)] = LABEL["medial_tibial_cartilage"]
+    image = sitk.GetImageFromArray(labels)
+    image.SetSpacing((sp, sp, sp))
+    return image
+
+
+def test_a_cartilage_too_thin_for_its_layers_is_meshed_in_fewer_and_says_so():
+    """Half a millimetre of cartilage: four layers of 1 mm elements cannot stay within the edge ratio
+    (every column keeps a floor of about 0.7 mm, two thirds more volume than the label), so two
+    layers are tried; the mesh meets every target and ships for review, its report saying why it
+    has fewer layers than asked.  A millimetre of cartilage keeps its four."""
+    from kneemesh_core.job.verdict import tissue_verdict
+
+    f = mesh_cartilage(_plate_on_bone(0.5), "medial_tibial_cartilage").facts
+    assert (f["n_layers"], f["layers_asked"]) == (2, 4) and f["fallbacks"] == ["fewer_layers"], f["attempts"]
+    assert f["gate_passed"] and f["fidelity_passed"] and abs(f["median_thickness_mm"] - 0.5) < 0.1
+    status, reasons = tissue_verdict(False, f)
+    assert status == "review" and reasons == [
+        "meshed in 2 element layers, not the 4 asked for: the cartilage (median 0.5 mm thick) is too thin for 4 "
+        f"layers of {f['element_size_mm']} mm elements within the edge-ratio target"]
+    f = mesh_cartilage(_plate_on_bone(1.0), "medial_tibial_cartilage").facts
+    assert f["n_layers"] == 4 and "layers_asked" not in f and f["gate_passed"] and f["fidelity_passed"]
+
+
 def test_a_mesh_short_of_the_gate_but_usable_ships_for_review_not_thrown_away():
     """Seen on unseen OA knees: a femoral cartilage of ~22 000 elements with 14 under 0.5 (min 0.21)
     after every fallback.  Usable for FE, it ships as review with the reason; a mesh with an element

@@ -26,7 +26,7 @@ from kneemesh_core.hexmesh.footprint import Footprint, find_footprint
 from kneemesh_core.hexmesh.quadmesh import quad_mesh
 from kneemesh_core.hexmesh.quality import boundary_crossings, crossing_nodes, hex_quality, passes_gate, summary, to_grid, usable
 from kneemesh_core.hexmesh.rays import height_field
-from kneemesh_core.hexmesh.targets import (BLEND_FRAC_GOOD, BLEND_MIN_SCALED_JACOBIAN, FUSED_TOL_MM,
+from kneemesh_core.hexmesh.targets import (BLEND_FRAC_GOOD, BLEND_MIN_SCALED_JACOBIAN, EDGE_RATIO_AIM, FUSED_TOL_MM,
                                            MAX_ATTEMPT_VOLUME_ERROR, MAX_EDGE_RATIO, MIN_SCALED_JACOBIAN)
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.surfaces.masks import CleanMask, clean_mask, label_box
@@ -286,6 +286,26 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
     tried: list[str] = []
     best: Attempt | None = None
     cache: dict = {}
+
+    def attempt(name: str, o: HexOptions, h: float) -> Attempt | None:
+        """One attempt, recorded in ``tried`` and kept in ``best`` if it ranks higher; None where it
+        gave no mesh of the cartilage."""
+        nonlocal best
+        try:
+            a = _attempt(name, labels, tissue, o, h, cache)
+        except KneeMeshError:
+            raise
+        except Exception as exc:  # a geometric failure: record it and fall back
+            tried.append(f"{name} ({type(exc).__name__}: {exc})")
+            return None
+        if abs(a.fidelity["volume_error"]) > MAX_ATTEMPT_VOLUME_ERROR:
+            tried.append(f"{name} (volume off by {a.fidelity['volume_error']:.0%})")
+            return None
+        if best is None or a.score() > best.score():
+            best = a
+        tried.append(name)
+        return a
+
     for name, change in (("default", {}),) + (FALLBACKS if opts.fallbacks else ()):
         short = best is not None and short_of_footprint(best.fidelity)
         # narrowing cannot help a mesh within the gate that already covers too little; widening is
@@ -294,25 +314,30 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
             continue
         change = dict(change)
         factor = change.pop("element_size_factor", 1.0)
-        try:
-            a = _attempt(name, labels, tissue, dataclasses.replace(opts, **change), opts.element_size * factor, cache)
-        except KneeMeshError:
-            raise
-        except Exception as exc:  # a geometric failure: record it and fall back
-            tried.append(f"{name} ({type(exc).__name__}: {exc})")
-            continue
-        if abs(a.fidelity["volume_error"]) > MAX_ATTEMPT_VOLUME_ERROR:
-            tried.append(f"{name} (volume off by {a.fidelity['volume_error']:.0%})")
-            continue
-        if best is None or a.score() > best.score():
-            best = a
-        if a.within_gate and a.faithful:
+        a = attempt(name, dataclasses.replace(opts, **change), opts.element_size * factor)
+        if a is not None and a.within_gate and a.faithful:
             break
-        tried.append(name)
+    asked_layers = opts.layers
+    if opts.fallbacks and best is not None and not (best.within_gate and best.faithful):
+        # last, for a cartilage too thin for its layers: every column keeps a floor of layers x edge /
+        # EDGE_RATIO_AIM, so 4 layers of 1 mm elements cannot follow cartilage under ~0.7 mm (phantom
+        # 30567 left severity 3 FC, median 0.51 mm: 3.9 % of elements above the edge ratio in every
+        # attempt, no usable mesh); fewer layers are tried, and the report says so (real knees'
+        # cartilages are thicker: it never runs on them)
+        layers = layers_that_fit(best.footprint, opts.element_size)
+        if layers < opts.layers:
+            thin = dataclasses.replace(opts, layers=layers)
+            for name, change in (("fewer_layers", {}), ("fewer_layers_rim_inside", {"probe_inset": 0.3})):
+                a = attempt(name, dataclasses.replace(thin, **change), opts.element_size)
+                if a is not None and a.within_gate and a.faithful:
+                    break
     if best is None:
         raise KneeMeshError("meshing_failed", f"{tissue}: every attempt failed: {'; '.join(tried)}.")
+    layers = int(best.mesh.node_layer.max())
     facts = {
-        "n_layers": opts.layers,
+        "n_layers": layers,
+        **({"layers_asked": asked_layers, "median_thickness_mm": round(median_thickness(best.footprint), 3)}
+           if layers != asked_layers else {}),
         "element_size_mm": round(float(np.median(_inplane_edges(best.mesh))), 4),
         **best.summary,
         **best.fidelity,
@@ -320,7 +345,7 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
         "defect_holes": best.footprint.holes(),
         "finer_pieces": best.finer_pieces,
         "fallbacks": [] if best.name == "default" else [best.name],
-        "attempts": tried + ([best.name] if best.name not in tried else []),
+        "attempts": tried,
         "domain": best.domain.describe(),
         "gate_passed": bool(best.within_gate),
         "usable": bool(best.usable),
@@ -405,6 +430,17 @@ def _blend_checked(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOptio
         report["reason"] = (f"nodes up to {penetration} mm inside the bone remain (unblended: {before} mm): "
                             "the bone mesh and the cartilage labels disagree there")
     return CartilageMesh(hm, q, {**cm.facts, "fused_fraction": fused, "blend": report}, cm.surface)
+
+
+def median_thickness(fp: Footprint) -> float:
+    """Median cartilage thickness (mm) along the rays inside a footprint."""
+    return float(np.median((fp.joint - fp.bone)[fp.inside]))
+
+
+def layers_that_fit(fp: Footprint, h: float) -> int:
+    """The most element layers (at least 1) whose height over the footprint's median thickness keeps
+    an element of in-plane size ``h`` (mm) within :data:`.targets.EDGE_RATIO_AIM`."""
+    return max(1, int(EDGE_RATIO_AIM * median_thickness(fp) / h))
 
 
 def _inplane_edges(hm: HexMesh) -> np.ndarray:

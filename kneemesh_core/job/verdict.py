@@ -52,6 +52,10 @@ def cartilage_reasons(e: dict) -> list[str]:
         out.append(f"short of the quality gate before blending ({'; '.join(missed) or 'see gate'}) but usable for finite "
                    f"elements (every element at least {USABLE_MIN_SCALED_JACOBIAN}, at most {USABLE_FRAC_BELOW:.1%} below "
                    f"{MIN_SCALED_JACOBIAN}, at most {USABLE_FRAC_EDGE_RATIO:.0%} above the edge ratio)")
+    if "layers_asked" in e:
+        out.append(f"meshed in {e['n_layers']} element layers, not the {e['layers_asked']} asked for: the cartilage "
+                   f"(median {e['median_thickness_mm']} mm thick) is too thin for {e['layers_asked']} layers of "
+                   f"{e['element_size_mm']} mm elements within the edge-ratio target")
     # the fidelity targets judge the mesh before its edge blend (its figures under "gate" once the
     # headline figures are the shipped file's), and the blended file beyond the rim the blend reshapes
     swept = {**e, **{k: gate[k] for k in FIGURES if k in gate}}
