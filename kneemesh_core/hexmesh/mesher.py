@@ -84,12 +84,17 @@ FALLBACKS: tuple[tuple[str, dict], ...] = (
     # reading the rim's heights inside keeps them valid where smaller elements alone dip below
     # 0.5 (OAI 9171097_96m FC and 9364232_96m LTC pass every fidelity target only this way).
     ("smaller_elements_rim_inside", {"element_size_factor": 0.75, "probe_inset": 0.3}),
+    # Last resort for a mesh at all: the rim trimmed where it rolls over past 45 deg.  Thick cartilage
+    # on a bone that falls away steeply under it (the notch roof of a thick knee: 3.7 mm of cartilage
+    # on bone at 56 deg to the rays, phantom 30585 left FC) makes columns that cross in every attempt
+    # above; without that rim the mesh is usable and within the gate, if short of coverage (review).
+    ("steep_rim_trimmed", {"edge_fraction": 0.35, "max_slope_deg": 45.0}),
 )
 
 #: Fallbacks that shrink the footprint for squarer rim elements: once an attempt is within the
 #: gate and short of coverage or volume, they can only fall further short, so they are skipped
 #: (a third of the time of a cartilage that runs the whole chain).
-NARROWING = frozenset({"rim_inside_trimmed", "trimmed_rim", "deeper_inset"})
+NARROWING = frozenset({"rim_inside_trimmed", "trimmed_rim", "deeper_inset", "steep_rim_trimmed"})
 #: Fallbacks that widen the footprint: tried only then, when an attempt is within the gate and
 #: short of coverage or volume (they rarely help an attempt that is outside the gate).
 WIDENING = frozenset({"rim_to_wall", "thin_rim_to_wall"})
