@@ -16,6 +16,7 @@ from kneemesh_core.surfaces.metrics import distance_to_surface, within
 #: The figures of a :func:`fidelity` result that the targets read, headline figures of a shipped mesh.
 FIGURES = ("volume_ml", "volume_error", "coverage", "surface_deviation_mm")
 
+
 def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float, unblended: HexMesh | None = None,
              rings: int = 0) -> dict:
     """Volume against the label, area coverage of the reconstructed surface, articular deviation.

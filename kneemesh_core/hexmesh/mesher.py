@@ -292,9 +292,9 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
     best: Attempt | None = None
     cache: dict = {}
 
-    def attempt(name: str, o: HexOptions, h: float) -> Attempt | None:
-        """One attempt, recorded in ``tried`` and kept in ``best`` if it ranks higher; None where it
-        gave no mesh of the cartilage."""
+    def attempt(name: str, o: HexOptions, h: float) -> bool:
+        """One attempt, recorded in ``tried`` and kept in ``best`` if it ranks higher; whether it ends
+        the chain (within the gate and faithful)."""
         nonlocal best
         try:
             a = _attempt(name, labels, tissue, o, h, cache)
@@ -302,14 +302,14 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
             raise
         except Exception as exc:  # a geometric failure: record it and fall back
             tried.append(f"{name} ({type(exc).__name__}: {exc})")
-            return None
+            return False
         if abs(a.fidelity["volume_error"]) > MAX_ATTEMPT_VOLUME_ERROR:
             tried.append(f"{name} (volume off by {a.fidelity['volume_error']:.0%})")
-            return None
+            return False
         if best is None or a.score() > best.score():
             best = a
         tried.append(name)
-        return a
+        return a.within_gate and a.faithful
 
     for name, change in (("default", {}),) + (FALLBACKS if opts.fallbacks else ()):
         short = best is not None and short_of_footprint(best.fidelity)
@@ -319,10 +319,8 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
             continue
         change = dict(change)
         factor = change.pop("element_size_factor", 1.0)
-        a = attempt(name, dataclasses.replace(opts, **change), opts.element_size * factor)
-        if a is not None and a.within_gate and a.faithful:
+        if attempt(name, dataclasses.replace(opts, **change), opts.element_size * factor):
             break
-    asked_layers = opts.layers
     if opts.fallbacks and best is not None and not (best.within_gate and best.faithful):
         # last, for a cartilage too thin for its layers: every column keeps a floor of layers x edge /
         # EDGE_RATIO_AIM, so 4 layers of 1 mm elements cannot follow cartilage under ~0.7 mm (phantom
@@ -333,16 +331,15 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
         if layers < opts.layers:
             thin = dataclasses.replace(opts, layers=layers)
             for name, change in (("fewer_layers", {}), ("fewer_layers_rim_inside", {"probe_inset": 0.3})):
-                a = attempt(name, dataclasses.replace(thin, **change), opts.element_size)
-                if a is not None and a.within_gate and a.faithful:
+                if attempt(name, dataclasses.replace(thin, **change), opts.element_size):
                     break
     if best is None:
         raise KneeMeshError("meshing_failed", f"{tissue}: every attempt failed: {'; '.join(tried)}.")
     layers = int(best.mesh.node_layer.max())
     facts = {
         "n_layers": layers,
-        **({"layers_asked": asked_layers, "median_thickness_mm": round(median_thickness(best.footprint), 3)}
-           if layers != asked_layers else {}),
+        **({"layers_asked": opts.layers, "median_thickness_mm": round(median_thickness(best.footprint), 3)}
+           if layers != opts.layers else {}),
         "element_size_mm": round(float(np.median(_inplane_edges(best.mesh))), 4),
         **best.summary,
         **best.fidelity,
