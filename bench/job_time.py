@@ -5,9 +5,10 @@
 Default maps: every 4th OAI label map in ../shared/data/real/oai_labels (10 knees; OAI-size
 384x384x160 maps). Each knee is one `kneemesh mesh` process (start-up included), so run this on an
 idle machine. Prints per knee the wall time and where it went along the critical path, read from
-the job's step records: start-up (process start to the first step), ingest, bones, cartilages
-(beside them the anatomy), conform, decks and report; the longest step of each stage; then median,
-p90 and max of the wall time.
+the job's step records: start-up (process start to the first step), then how much later each stage
+of the plan ended than the one before (ingest; meshing: bones and cartilage meshes; blends: the
+cartilages' blends beside the anatomy; conform; decks beside the overlaps; report) with its longest
+step, and the exit; then median, p90 and max of each.
 """
 
 from __future__ import annotations
@@ -39,8 +40,10 @@ def _t(stamp: str) -> float:
 
 
 def time_job(path: Path, workers: int, tmp: Path) -> dict:
-    """Run one job as a process and return its wall time, the span of each stage of its plan
-    (first start to last finish of the stage's steps) and the stage's longest step."""
+    """Run one job as a process and return its wall time and where it went: the start-up (process
+    start to the first step), then for each stage of its plan how much later than the stage before
+    it ended (its steps may start before that stage ends: each step waits only for what it reads)
+    and its longest step, and the exit after the last step."""
     out = tmp / path.name.split(".")[0]
     t0 = time.time()
     proc = subprocess.run([sys.executable, "-m", "kneemesh", "mesh", str(path), "--out", str(out),
@@ -50,23 +53,25 @@ def time_job(path: Path, workers: int, tmp: Path) -> dict:
         return {"knee": path.name, "wall": wall, "error": proc.stderr.strip().splitlines()[-1:]}
     steps = {p.stem: json.loads(p.read_text()) for p in (out / "steps").glob("*.json")}
     report = json.loads((out / "report.json").read_text())
-    stages = []
+    first = min(_t(r["started_at"]) for r in steps.values())
+    stages, end = [], first
     for stage in plan(JobOptions()):
         recs = {s: steps[s] for s in stage if s in steps}
         if not recs:
             continue
-        start = min(_t(r["started_at"]) for r in recs.values())
-        end = max(_t(r["finished_at"]) for r in recs.values())
         longest = max(recs, key=lambda s: recs[s]["seconds"])
-        stages.append({"stage": _stage_name(stage), "start": start,
-                       "span": end - start, "longest": longest, "longest_s": recs[longest]["seconds"]})
-    return {"knee": path.name, "wall": wall, "startup": stages[0]["start"] - t0, "stages": stages,
+        stage_end = max(end, max(_t(r["finished_at"]) for r in recs.values()))
+        stages.append({"stage": _stage_name(stage), "span": stage_end - end, "longest": longest,
+                       "longest_s": recs[longest]["seconds"]})
+        end = stage_end
+    return {"knee": path.name, "wall": wall, "startup": first - t0, "stages": stages, "exit": t0 + wall - end,
             "verdict": report.get("verdict", {}).get("status")}
 
 
 def _stage_name(stage: tuple[str, ...]) -> str:
     """A stage's name in the table: its step, or what its steps mesh."""
-    return "bones" if "femur" in stage else "cartilages" if "femoral_cartilage" in stage else "+".join(stage)
+    return ("bones" if "femur" in stage else "cartilages" if "femoral_cartilage" in stage
+            else "decks" if "decks" in stage else "+".join(stage))
 
 
 def main() -> None:
@@ -88,17 +93,14 @@ def main() -> None:
                                                                  f"; start-up {r['startup']:.1f}, {parts}; {r['verdict']}"))
     ok = [r for r in rows if "error" not in r]
     table = Table(title=f"Whole-knee job, `kneemesh mesh --workers {a.workers}`, {len(ok)}/{len(rows)} knees completed")
-    for col in ("", "wall s", "start-up s", "ingest s", "bones s", "cartilages s", "tail s"):
+    for col in ("", "wall s", "start-up s", "ingest s", "meshing s", "blends s", "conform to report s", "exit s"):
         table.add_column(col, justify="right")
 
-    def span(r: dict, name: str) -> float:
-        return sum(s["span"] for s in r["stages"] if s["stage"] == name)
-
-    def tail(r: dict) -> float:
-        return r["wall"] - r["startup"] - sum(span(r, n) for n in ("ingest", "bones", "cartilages"))
+    def span(r: dict, *names: str) -> float:
+        return sum(s["span"] for s in r["stages"] if s["stage"] in names)
 
     cols = [lambda r: r["wall"], lambda r: r["startup"], lambda r: span(r, "ingest"), lambda r: span(r, "bones"),
-            lambda r: span(r, "cartilages"), tail]
+            lambda r: span(r, "cartilages"), lambda r: span(r, "conform", "decks", "report"), lambda r: r["exit"]]
     for label, f in (("median", statistics.median), ("p90", lambda v: sorted(v)[int(0.9 * (len(v) - 1))]), ("max", max)):
         table.add_row(label, *(f"{f([c(r) for r in ok]):.1f}" for c in cols))
     console.print(table)

@@ -204,6 +204,20 @@ def knee(tmp_path_factory):
     return out, report
 
 
+def test_each_step_of_the_job_started_once_the_steps_it_reads_from_were_done(knee):
+    from datetime import datetime
+
+    from kneemesh_core.job import JobRequest, needs, plan, read_step
+
+    out, _ = knee
+    waits = needs(plan(JobRequest.build(element_size=2.0, simulate="smoke").job_options()))
+    records = {s: read_step(out, s) for s in waits}
+    assert all(r["state"] == "done" for r in records.values())
+    at = {s: {k: datetime.fromisoformat(r[k]) for k in ("started_at", "finished_at")} for s, r in records.items()}
+    for step, before in waits.items():
+        assert all(at[b]["finished_at"] <= at[step]["started_at"] for b in before), step
+
+
 def _cards(text: str) -> list[str]:
     return [line.split(",")[0].strip().upper() for line in text.splitlines() if line.startswith("*") and not line.startswith("**")]
 

@@ -8,8 +8,8 @@ import os
 
 import pytest
 
-from kneemesh_core.job import (ANATOMY, BUNDLE, CONFORM, DECKS, HEX_STEPS, INGEST, REPORT, SIMULATE, JobOptions, bundle,
-                               plan)
+from kneemesh_core.job import (ANATOMY, BUNDLE, CONFORM, DECKS, HEX_STEPS, INGEST, OVERLAPS, REPORT, SEGMENT, SIMULATE,
+                               JobOptions, bundle, critical_first, needs, plan)
 from kneemesh_core.tissues import CARTILAGES
 from services.jobs import Jobs
 from services.store import FileStore
@@ -17,8 +17,8 @@ from services.store import FileStore
 
 def test_plan_meshes_cartilage_beside_the_bones_and_blends_it_after():
     stages = plan(JobOptions(bundle=True))
-    assert stages[0] == (INGEST,) and stages[-4:] == [(CONFORM,), (DECKS,), (REPORT,), (BUNDLE,)]
-    assert plan(JobOptions(simulate="smoke"))[-3:] == [(DECKS,), (SIMULATE,), (REPORT,)]
+    assert stages[0] == (INGEST,) and stages[-4:] == [(CONFORM,), (DECKS, OVERLAPS), (REPORT,), (BUNDLE,)]
+    assert plan(JobOptions(simulate="smoke"))[-3:] == [(DECKS, OVERLAPS), (SIMULATE,), (REPORT,)]
     # a cartilage's mesh needs only the labels: it is made beside the bones, the longest first
     assert set(stages[1]) == {"femur", "tibia", "patella"} | {f"hex_{c}" for c in CARTILAGES}
     assert stages[1][:2] == ("hex_femoral_cartilage", "femur")
@@ -29,7 +29,27 @@ def test_plan_meshes_cartilage_beside_the_bones_and_blends_it_after():
     assert plan(JobOptions(only="bones")) == [(INGEST,), ("femur", "tibia", "patella"), (ANATOMY,), (REPORT,)]
     only = plan(JobOptions(only="cartilage"))
     assert ANATOMY not in sum(only, ()) and only[1][0] == "hex_femoral_cartilage"  # the sites need the bone meshes
+    assert only[-2:] == [(OVERLAPS,), (REPORT,)] and DECKS not in sum(only, ())  # decks need the whole knee
     assert CONFORM not in sum(plan(JobOptions(blend=None)), ())  # the bones give way only to fused cartilage
+
+
+def test_a_step_waits_only_for_what_it_reads_and_the_longest_chain_starts_first():
+    stages = plan(JobOptions())
+    waits = needs(stages)
+    # a blend waits for its own mesh and its bone's, not for the other tissues of their stage
+    assert waits["femoral_cartilage"] == {INGEST, "hex_femoral_cartilage", "femur"}
+    assert waits["patellar_cartilage"] == {INGEST, "hex_patellar_cartilage", "patella"}
+    assert waits[ANATOMY] == {INGEST, "femur", "tibia", "patella"}  # the bones, not the cartilages
+    before = set(sum(stages[:3], ()))
+    assert waits[CONFORM] == before and waits[DECKS] == waits[OVERLAPS] == before | {CONFORM}
+    assert waits[REPORT] == set(sum(stages[:-1], ()))
+    # an image's segmentation comes before everything else
+    assert SEGMENT in needs(plan(JobOptions(input_type="image")))["femoral_cartilage"]
+    order = critical_first(stages)
+    assert order[:6] == [INGEST, "hex_femoral_cartilage", "femur", "tibia", "patella", "femoral_cartilage"]
+    assert order.index(ANATOMY) < order.index("hex_medial_tibial_cartilage")  # the bones' chain is longer
+    for step in order:  # a valid order to run them one by one
+        assert waits[step] <= set(order[: order.index(step)])
 
 
 @pytest.fixture

@@ -2,8 +2,9 @@
 
 - :mod:`.options` - what a user can ask (:class:`JobRequest`) and what the steps are told
   (:class:`JobOptions`);
-- :mod:`.steps` - what runs on one knee: ingest, segment, mesh a tissue (a cartilage: mesh, then blend), conform, anatomy, decks, simulate;
-- :mod:`.plan` - the stages in order, and :func:`run_step`, which runs and records one step;
+- :mod:`.steps` - what runs on one knee: ingest, segment, mesh a tissue (a cartilage: mesh, then blend), conform, anatomy, decks,
+  overlaps, simulate;
+- :mod:`.plan` - the stages in order, what each step waits for, and :func:`run_step`, which runs and records one step;
 - :mod:`.outputs` - the job folder: file names, step records, ``report.json``, the bundle;
 - :mod:`.local` - the in-process runner (:func:`run`).
 """
@@ -11,8 +12,9 @@
 from kneemesh_core.job.local import JobCancelled, run
 from kneemesh_core.job.options import GROUPS, INPUT_TYPES, JobOptions, JobRequest
 from kneemesh_core.job.outputs import BUNDLE_FILE, MANIFEST_FILE, REPORT_FILE, bundle, read_step, utc_now
-from kneemesh_core.job.plan import ANATOMY, BUNDLE, CONFORM, DECKS, HEX_STEPS, INGEST, REPORT, SEGMENT, SIMULATE, plan, run_step
+from kneemesh_core.job.plan import (ANATOMY, BUNDLE, CONFORM, DECKS, HEX_STEPS, INGEST, OVERLAPS, REPORT, SEGMENT, SIMULATE,
+                                   critical_first, needs, plan, run_step)
 
-__all__ = ["ANATOMY", "BUNDLE", "BUNDLE_FILE", "CONFORM", "DECKS", "SIMULATE", "GROUPS", "HEX_STEPS", "INGEST", "INPUT_TYPES", "JobCancelled", "JobOptions",
-           "JobRequest", "MANIFEST_FILE", "REPORT", "REPORT_FILE", "SEGMENT", "bundle", "plan", "read_step", "run",
-           "run_step", "utc_now"]
+__all__ = ["ANATOMY", "BUNDLE", "BUNDLE_FILE", "CONFORM", "DECKS", "OVERLAPS", "SIMULATE", "GROUPS", "HEX_STEPS", "INGEST",
+           "INPUT_TYPES", "JobCancelled", "JobOptions", "JobRequest", "MANIFEST_FILE", "REPORT", "REPORT_FILE", "SEGMENT",
+           "bundle", "critical_first", "needs", "plan", "read_step", "run", "run_step", "utc_now"]

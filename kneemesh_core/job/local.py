@@ -5,20 +5,24 @@ from __future__ import annotations
 
 import os
 import shutil
-from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from pathlib import Path
 from typing import Callable
 
 from kneemesh_core.job.options import JobOptions
 from kneemesh_core.job.outputs import REPORT_FILE, STEPS_DIR, read_json
-from kneemesh_core.job.plan import plan, run_step
+from kneemesh_core.job.plan import INGEST, SEGMENT, critical_first, needs, plan, run_step
 
 #: Called with (step, state) as each step starts ("running") and ends (a tissue's status, or "done").
 Progress = Callable[[str, str], None]
 
 
+#: The steps that read the job's input file: they run in this process, before any other.
+_NEEDS_INPUT = (INGEST, SEGMENT)
+
+
 class JobCancelled(Exception):
-    """Raised by :func:`run` between stages when its ``cancelled`` callback says so."""
+    """Raised by :func:`run` before a step when its ``cancelled`` callback says so."""
 
 
 def run(
@@ -34,33 +38,43 @@ def run(
 ) -> dict:
     """Run the whole :func:`.plan.plan` in this process and return the report.
 
-    Steps of a stage run on ``pool`` (or a new pool of ``workers`` processes;
-    one worker runs them here). ``fresh`` forgets the step records of an
+    Each step starts as soon as the steps it waits for (:func:`.plan.needs`) are done and one of
+    ``workers`` is free, the longest chain first (:func:`.plan.critical_first`): on ``pool`` (or a
+    new pool of ``workers`` processes; one worker runs them here).  ``fresh`` forgets the step records of an
     earlier run into ``out_dir``; without it, steps already done are skipped
     (the embedded service resumes jobs whose ingest the API has done).
-    ``cancelled`` is asked before each stage; it raises :class:`JobCancelled`.
+    ``cancelled`` is asked before each step starts; it raises :class:`JobCancelled`.
     """
     say = progress or (lambda step, state: None)
     if fresh:
         shutil.rmtree(Path(out_dir) / STEPS_DIR, ignore_errors=True)
     opts = options.to_dict()
+    stages = plan(options)
+    waits = needs(stages)
+    order = critical_first(stages)
     own_pool = pool is None and workers > 1
     if own_pool:
         pool = ProcessPoolExecutor(max_workers=workers)
+    done: set[str] = set()
+    running: dict[Future, str] = {}
     try:
-        for stage in plan(options):
+        while len(done) < len(order):
             if cancelled is not None and cancelled():
                 raise JobCancelled(str(out_dir))
-            if pool is None or len(stage) == 1:
-                for step in stage:
-                    say(step, "running")
-                    say(step, _outcome(run_step(out_dir, step, opts, input_path)))
-                continue
-            for step in stage:
+            ready = [s for s in order if s not in done and s not in running.values() and waits[s] <= done]
+            for step in ready[: workers - len(running)]:  # a step goes to a free worker, not to a queue
                 say(step, "running")
-            futures = {pool.submit(run_step, str(out_dir), step, opts): step for step in stage}
-            for fut in as_completed(futures):
-                say(futures[fut], _outcome(fut.result()))
+                if pool is None or step in _NEEDS_INPUT:  # alone by the plan: ingest and segment start a job
+                    say(step, _outcome(run_step(out_dir, step, opts, input_path)))
+                    done.add(step)
+                    break  # what it unlocks is scheduled on the next turn
+                running[pool.submit(run_step, str(out_dir), step, opts)] = step
+            if running:
+                finished, _ = wait(running, return_when=FIRST_COMPLETED)
+                for fut in finished:
+                    step = running.pop(fut)
+                    say(step, _outcome(fut.result()))
+                    done.add(step)
     finally:
         if own_pool:
             pool.shutdown()

@@ -1,7 +1,8 @@
 """The plan of a job, and :func:`run_step`, which runs and records one step of it.
 
 A job is a list of stages run in order; the steps of one stage are independent of each
-other, so a runner may run them in parallel:
+other, so a runner may run them in parallel, or start each step as soon as those it reads
+from are done (:func:`needs`), the longest chain first (:func:`critical_first`):
 
 1. ``ingest`` reads the input, decides the label convention and the side, and writes
    canonical labels and ``job.json``; for an image, ``segment`` then writes the labels;
@@ -12,7 +13,8 @@ other, so a runner may run them in parallel:
    give way where a fused cartilage still dips into it;
 4. ``anatomy`` (when the bones are meshed) places the knee's frames and the ligament and
    tendon attachment sites on the bone meshes; ``decks`` (when every tissue is meshed) writes the
-   Abaqus and CalculiX decks; ``simulate`` (on request) runs CalculiX on them;
+   Abaqus and CalculiX decks, and beside them ``overlaps`` measures where the final meshes
+   overlap; ``simulate`` (on request) runs CalculiX on the decks;
 5. ``report`` gathers the entries into ``report.json``;
 6. ``bundle`` (optional) zips the outputs and lists every artifact.
 
@@ -27,19 +29,16 @@ from __future__ import annotations
 
 import os
 import time
-from pathlib import Path
-from typing import Iterable
 
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.job.options import JobOptions
-from kneemesh_core.job.outputs import MESHES_DIR, bundle, read_step, utc_now, write_report, write_step
-from kneemesh_core.job.steps import (conform_bones, hex_cartilage, hex_step, ingest, mesh_tissue, place_anatomy,
-                                    run_simulation, segment_input, write_decks)
-from kneemesh_core.metrics.overlap import knee_overlaps
-from kneemesh_core.tissues import BONES, CARTILAGES, TISSUES
+from kneemesh_core.job.outputs import bundle, read_step, utc_now, write_report, write_step
+from kneemesh_core.job.steps import (conform_bones, hex_cartilage, hex_step, ingest, measure_overlaps, mesh_tissue,
+                                    place_anatomy, run_simulation, segment_input, write_decks)
+from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, TISSUES
 
-INGEST, SEGMENT, CONFORM, ANATOMY, DECKS, SIMULATE, REPORT, BUNDLE = (
-    "ingest", "segment", "conform", "anatomy", "decks", "simulate", "report", "bundle")
+INGEST, SEGMENT, CONFORM, ANATOMY, DECKS, OVERLAPS, SIMULATE, REPORT, BUNDLE = (
+    "ingest", "segment", "conform", "anatomy", "decks", "overlaps", "simulate", "report", "bundle")
 #: the step that meshes each cartilage before its own step blends it, and the cartilage it meshes
 HEX_STEPS = {hex_step(c): c for c in CARTILAGES}
 
@@ -51,22 +50,42 @@ def plan(options: JobOptions) -> list[tuple[str, ...]]:
     # the anatomy needs only the bones and the labels: it runs beside the cartilages' blends (or after
     # the bones when no cartilage is asked for)
     anatomy = (ANATOMY,) if set(tissues) >= set(BONES) else ()
-    cartilages = tuple(_longest_first(t for t in tissues if t in CARTILAGES))
-    meshing = tuple(_longest_first([t for t in tissues if t in BONES] + [hex_step(c) for c in cartilages]))
+    cartilages = tuple(t for t in tissues if t in CARTILAGES)
+    meshing = tuple([t for t in tissues if t in BONES] + [hex_step(c) for c in cartilages])
     if meshing:
         stages.append(meshing)
     if cartilages or anatomy:
-        stages.append(cartilages[:1] + anatomy + cartilages[1:])  # the longest first, the anatomy next
+        stages.append(cartilages + anatomy)
     if options.blend is not None and set(tissues) >= set(BONES) | set(CARTILAGES):
         stages.append((CONFORM,))
-    if set(tissues) == set(TISSUES):
-        stages.append((DECKS,))
-        if options.simulate != "none":
-            stages.append((SIMULATE,))
+    # the final meshes: the decks (of a whole knee) beside the measurement of their overlaps
+    final = ((DECKS,) if set(tissues) == set(TISSUES) else ()) + ((OVERLAPS,) if cartilages else ())
+    if final:
+        stages.append(final)
+    if DECKS in final and options.simulate != "none":
+        stages.append((SIMULATE,))
     stages.append((REPORT,))
     if options.bundle:
         stages.append((BUNDLE,))
-    return stages
+    rank = critical_first(stages)
+    return [tuple(sorted(stage, key=rank.index)) for stage in stages]
+
+
+def needs(stages: list[tuple[str, ...]]) -> dict[str, set[str]]:
+    """The steps each step of ``stages`` (a :func:`plan`) waits for: every step of the stages before
+    its own, except that of the stage just before, a cartilage's blend waits only for its own mesh
+    and its bone's, and the anatomy only for the bones.  A runner that starts each step as soon as
+    these are done (:mod:`.local`) lets the anatomy and the short blends run while the femoral
+    cartilage is still meshed; one that runs stage after stage (Celery) meets them too."""
+    reads = {c: {hex_step(c), BONE_OF[c]} for c in CARTILAGES} | {ANATOMY: set(BONES)}
+    waits: dict[str, set[str]] = {}
+    before: set[str] = set()
+    for i, stage in enumerate(stages):
+        last = set(stages[i - 1]) if i else set()
+        for step in stage:
+            waits[step] = (before - last) | (last & reads[step]) if step in reads else set(before)
+        before |= set(stage)
+    return waits
 
 
 def run_step(
@@ -124,6 +143,8 @@ def _run(out_dir: str | os.PathLike, step: str, options: dict, input_path: str |
         return place_anatomy(out_dir, options)
     if step == DECKS:
         return write_decks(out_dir, options)
+    if step == OVERLAPS:
+        return measure_overlaps(out_dir)
     if step == SIMULATE:
         return run_simulation(out_dir, options)
     if step == REPORT:
@@ -131,18 +152,29 @@ def _run(out_dir: str | os.PathLike, step: str, options: dict, input_path: str |
         entries = {t: read_step(out_dir, t)["result"] for t in opts.tissues()}
         planned = sum(plan(opts), ())
         conformed = read_step(out_dir, CONFORM)["result"] if CONFORM in planned else None
-        segmentation, anatomy, fe, simulation = (read_step(out_dir, s)["result"] if s in planned else None
-                                                 for s in (SEGMENT, ANATOMY, DECKS, SIMULATE))
-        overlaps = knee_overlaps(Path(out_dir) / MESHES_DIR) if any(t in CARTILAGES for t in entries) else None
+        segmentation, anatomy, fe, simulation, overlaps = (read_step(out_dir, s)["result"] if s in planned else None
+                                                           for s in (SEGMENT, ANATOMY, DECKS, SIMULATE, OVERLAPS))
         return write_report(out_dir, entries, conformed, anatomy, fe, simulation, overlaps, segmentation)["summary"]
     if step == BUNDLE:
         return {"artifacts": len(bundle(out_dir))}
     raise KneeMeshError("bad_option", f"unknown step {step!r}.")
 
 
-def _longest_first(steps: Iterable[str]) -> list[str]:
-    """Schedule the long steps first so the pool finishes together (an OAI knee's seconds:
-    femoral cartilage 4-12, femur 1.3, each plate and the patellar cartilage about 1, tibia 0.8,
-    patella 0.3; blending the femoral cartilage 1.1, each other 0.3)."""
-    cost = {hex_step("femoral_cartilage"): 0, "femur": 1, "femoral_cartilage": 2, "tibia": 8, "patella": 9}
-    return sorted(steps, key=lambda t: cost.get(t, 5))
+#: Typical seconds of a step on an OAI knee (one core of a 2-core machine), for the order in which
+#: a runner starts them: the femoral cartilage takes 3-9 s to mesh, each other cartilage about 0.8;
+#: a blend 0.3 (the femoral 1.5).
+TYPICAL_S = {hex_step("femoral_cartilage"): 6.0, "femur": 1.7, "tibia": 0.8, "patella": 0.3, "femoral_cartilage": 1.5,
+             ANATOMY: 1.4, DECKS: 0.5, **{hex_step(c): 0.8 for c in CARTILAGES if c != "femoral_cartilage"}}
+
+
+def critical_first(stages: list[tuple[str, ...]]) -> list[str]:
+    """Every step of ``stages``, those with the longest chain of waiting steps (:func:`needs`, in
+    :data:`TYPICAL_S` seconds) from their start to the job's end first: the femoral cartilage's mesh,
+    then the femur its blend waits for, the other bones the anatomy waits for, then the short
+    cartilages; the femoral blend and the anatomy before the short blends."""
+    waits = needs(stages)
+    steps = [s for stage in stages for s in stage]
+    rest: dict[str, float] = {}
+    for step in reversed(steps):
+        rest[step] = TYPICAL_S.get(step, 0.3) + max((rest[s] for s in rest if step in waits[s]), default=0.0)
+    return sorted(steps, key=lambda s: -rest[s])  # stable: ties keep the plan's order

@@ -28,6 +28,7 @@ from kneemesh_core.job.outputs import (ATTACHMENTS_FIGURE, ATTACHMENTS_FILE, JOB
                                        SURFACES_DIR, WORK_DIR, load_unblended, read_json, read_step, save_mesh,
                                        save_unblended, write_json)
 from kneemesh_core.knee import canonicalise, describe, describe_image
+from kneemesh_core.metrics.overlap import knee_overlaps
 from kneemesh_core.surfaces.tissue import reconstruct_bone
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, LABEL, resolve_convention
 
@@ -240,6 +241,12 @@ def place_anatomy(out_dir: str | os.PathLike, options: dict) -> dict:
         return anatomy.report
 
     return _guarded(work)
+
+
+def measure_overlaps(out_dir: str | os.PathLike) -> dict:
+    """Where the job's final meshes overlap (:func:`kneemesh_core.metrics.overlap.knee_overlaps`): the
+    report's ``overlaps`` entry; never raises (a failure is the entry)."""
+    return _guarded(lambda: knee_overlaps(Path(out_dir) / MESHES_DIR))
 
 
 def _guarded(work) -> dict:

@@ -35,11 +35,12 @@ class JobCreated(BaseModel):
 
 
 class StepProgress(BaseModel):
-    step: str = Field(description="ingest, segment, a tissue name, hex_<cartilage>, conform, anatomy, decks, simulate, "
-                                  "report or bundle.")
+    step: str = Field(description="ingest, segment, a tissue name, hex_<cartilage>, conform, anatomy, decks, overlaps, "
+                                  "simulate, report or bundle.")
     kind: str = Field(description="ingest, segment, bone, hexmesh (a cartilage's mesh before its blend), cartilage, conform, "
-                                  "anatomy, decks, simulate, report or bundle.")
-    stage: int = Field(description="Steps of one stage run in parallel; stages run in order.")
+                                  "anatomy, decks, overlaps, simulate, report or bundle.")
+    stage: int = Field(description="The step's stage in the job's plan: steps of one stage may run in parallel, and a step "
+                                   "starts once the steps of earlier stages it reads from are done.")
     state: StepState
     status: str | None = Field(None, description="A tissue's outcome: ok, or failed with `error`.")
     started_at: str | None = None

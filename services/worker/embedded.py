@@ -1,7 +1,7 @@
 """Embedded mode: the API runs jobs itself on a pool of processes, so one machine needs nothing else.
 
 Jobs run one after another in submission order (one dispatcher thread); the
-steps of each stage share the pool, exactly as ``kneemesh mesh`` runs them.
+steps of each job share the pool, exactly as ``kneemesh mesh`` runs them.
 Jobs left unfinished by a previous run of the server are resumed at start:
 their finished steps are skipped.  The pool's processes end with the server however it
 ends (a clean stop, a crash, ``kill -9``, the OOM killer): each watches its parent and
@@ -70,7 +70,7 @@ class EmbeddedRunner:
         self._queue.put(rec.id)
 
     def cancel(self, rec, steps: list[dict]) -> None:
-        """Later stages are skipped; a step already on the pool runs to its end (its output is deleted)."""
+        """Steps not yet started are skipped; a step already on the pool runs to its end (its output is deleted)."""
 
     def ready(self) -> dict:
         alive = self._thread is not None and self._thread.is_alive()
@@ -84,7 +84,7 @@ class EmbeddedRunner:
                 continue
             try:
                 run(self._jobs.input_path(rec), self._jobs.out_dir(rec), JobOptions.from_dict(rec.options),
-                    pool=self._pool, fresh=False, cancelled=lambda: self._cancelled(job_id))
+                    pool=self._pool, workers=self.workers, fresh=False, cancelled=lambda: self._cancelled(job_id))
             except JobCancelled:
                 log.info("job %s cancelled", job_id)
             except Exception:  # recorded in the job's step records; the loop serves the next job
