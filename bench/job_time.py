@@ -65,7 +65,8 @@ def time_job(path: Path, workers: int, tmp: Path) -> dict:
                        "longest_s": recs[longest]["seconds"]})
         end = stage_end
     return {"knee": path.name, "wall": wall, "startup": first - t0, "stages": stages, "exit": t0 + wall - end,
-            "verdict": report.get("verdict", {}).get("status")}
+            "verdict": report.get("verdict", {}).get("status"),
+            "steps": {s: {"seconds": r["seconds"], "start": _t(r["started_at"]) - first} for s, r in steps.items()}}
 
 
 def _stage_name(stage: tuple[str, ...]) -> str:

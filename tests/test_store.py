@@ -9,7 +9,7 @@ import os
 import pytest
 
 from kneemesh_core.job import (ANATOMY, BUNDLE, CONFORM, DECKS, HEX_STEPS, INGEST, OVERLAPS, REPORT, SEGMENT, SIMULATE,
-                               JobOptions, bundle, critical_first, needs, plan)
+                               JobOptions, bundle, needs, plan, start_order)
 from kneemesh_core.tissues import CARTILAGES
 from services.jobs import Jobs
 from services.store import FileStore
@@ -19,9 +19,10 @@ def test_plan_meshes_cartilage_beside_the_bones_and_blends_it_after():
     stages = plan(JobOptions(bundle=True))
     assert stages[0] == (INGEST,) and stages[-4:] == [(CONFORM,), (DECKS, OVERLAPS), (REPORT,), (BUNDLE,)]
     assert plan(JobOptions(simulate="smoke"))[-3:] == [(DECKS, OVERLAPS), (SIMULATE,), (REPORT,)]
-    # a cartilage's mesh needs only the labels: it is made beside the bones, the longest first
+    # a cartilage's mesh needs only the labels: it is made beside the bones, and first
     assert set(stages[1]) == {"femur", "tibia", "patella"} | {f"hex_{c}" for c in CARTILAGES}
-    assert stages[1][:2] == ("hex_femoral_cartilage", "femur")
+    assert stages[1][:5] == ("hex_femoral_cartilage", "hex_medial_tibial_cartilage", "hex_lateral_tibial_cartilage",
+                             "hex_patellar_cartilage", "femur")
     assert set(HEX_STEPS) == {f"hex_{c}" for c in CARTILAGES}
     # its blend needs its bone's mesh: after them, beside the anatomy (which needs only the bones)
     assert stages[2] == ("femoral_cartilage", ANATOMY, "medial_tibial_cartilage", "lateral_tibial_cartilage",
@@ -33,7 +34,7 @@ def test_plan_meshes_cartilage_beside_the_bones_and_blends_it_after():
     assert CONFORM not in sum(plan(JobOptions(blend=None)), ())  # the bones give way only to fused cartilage
 
 
-def test_a_step_waits_only_for_what_it_reads_and_the_longest_chain_starts_first():
+def test_a_step_waits_only_for_what_it_reads_and_the_cartilage_meshes_start_first():
     stages = plan(JobOptions())
     waits = needs(stages)
     # a blend waits for its own mesh and its bone's, not for the other tissues of their stage
@@ -45,9 +46,10 @@ def test_a_step_waits_only_for_what_it_reads_and_the_longest_chain_starts_first(
     assert waits[REPORT] == set(sum(stages[:-1], ()))
     # an image's segmentation comes before everything else
     assert SEGMENT in needs(plan(JobOptions(input_type="image")))["femoral_cartilage"]
-    order = critical_first(stages)
-    assert order[:6] == [INGEST, "hex_femoral_cartilage", "femur", "tibia", "patella", "femoral_cartilage"]
-    assert order.index(ANATOMY) < order.index("hex_medial_tibial_cartilage")  # the bones' chain is longer
+    # the cartilages' meshes first (the longest, least predictable steps), then the bones, then the blend
+    # of the femoral cartilage and the anatomy before the short blends
+    order = start_order(stages)
+    assert order[:10] == [INGEST, *HEX_STEPS, "femur", "tibia", "patella", "femoral_cartilage", ANATOMY]
     for step in order:  # a valid order to run them one by one
         assert waits[step] <= set(order[: order.index(step)])
 

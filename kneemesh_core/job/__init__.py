@@ -13,8 +13,8 @@ from kneemesh_core.job.local import JobCancelled, run
 from kneemesh_core.job.options import GROUPS, INPUT_TYPES, JobOptions, JobRequest
 from kneemesh_core.job.outputs import BUNDLE_FILE, MANIFEST_FILE, REPORT_FILE, bundle, read_step, utc_now
 from kneemesh_core.job.plan import (ANATOMY, BUNDLE, CONFORM, DECKS, HEX_STEPS, INGEST, OVERLAPS, REPORT, SEGMENT, SIMULATE,
-                                   critical_first, needs, plan, run_step)
+                                   needs, plan, run_step, start_order)
 
 __all__ = ["ANATOMY", "BUNDLE", "BUNDLE_FILE", "CONFORM", "DECKS", "OVERLAPS", "SIMULATE", "GROUPS", "HEX_STEPS", "INGEST",
            "INPUT_TYPES", "JobCancelled", "JobOptions", "JobRequest", "MANIFEST_FILE", "REPORT", "REPORT_FILE", "SEGMENT",
-           "bundle", "critical_first", "needs", "plan", "read_step", "run", "run_step", "utc_now"]
+           "bundle", "needs", "plan", "read_step", "run", "run_step", "start_order", "utc_now"]

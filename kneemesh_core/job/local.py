@@ -11,7 +11,7 @@ from typing import Callable
 
 from kneemesh_core.job.options import JobOptions
 from kneemesh_core.job.outputs import REPORT_FILE, STEPS_DIR, read_json
-from kneemesh_core.job.plan import INGEST, SEGMENT, critical_first, needs, plan, run_step
+from kneemesh_core.job.plan import INGEST, SEGMENT, needs, plan, run_step, start_order
 
 #: Called with (step, state) as each step starts ("running") and ends (a tissue's status, or "done").
 Progress = Callable[[str, str], None]
@@ -39,7 +39,7 @@ def run(
     """Run the whole :func:`.plan.plan` in this process and return the report.
 
     Each step starts as soon as the steps it waits for (:func:`.plan.needs`) are done and one of
-    ``workers`` is free, the longest chain first (:func:`.plan.critical_first`): on ``pool`` (or a
+    ``workers`` is free, the cartilages' meshes first (:func:`.plan.start_order`): on ``pool`` (or a
     new pool of ``workers`` processes; one worker runs them here).  ``fresh`` forgets the step records of an
     earlier run into ``out_dir``; without it, steps already done are skipped
     (the embedded service resumes jobs whose ingest the API has done).
@@ -51,7 +51,7 @@ def run(
     opts = options.to_dict()
     stages = plan(options)
     waits = needs(stages)
-    order = critical_first(stages)
+    order = start_order(stages)
     own_pool = pool is None and workers > 1
     if own_pool:
         pool = ProcessPoolExecutor(max_workers=workers)
