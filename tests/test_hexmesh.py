@@ -242,6 +242,20 @@ def test_thick_cartilage_on_steep_bone_still_ships_a_mesh_for_review(phantoms):
     assert not f["fidelity_passed"] and f["coverage"] > 0.9
 
 
+def test_thin_cartilage_goes_through_the_whole_chain_in_fewer_layers(phantoms):
+    """A thin femoral cartilage (median 0.52 mm) whose rim folds over itself (boundary edges crossing)
+    in every attempt of the chain in four layers, and in two layers with the default options and
+    the rim heights read inside, the only two the thin-cartilage step tried before: the chain in two
+    layers finds a mesh within the gate (the smoother surface), short of the label, for review rather
+    than no femoral cartilage."""
+    _, labels = phantoms("right", 3, seed=30782)
+    f = mesh_cartilage(labels, "femoral_cartilage").facts
+    assert f["gate_passed"] and f["n_layers"] == 2 and f["layers_asked"] == 4, f["attempts"]
+    assert f["fallbacks"][0].startswith("2_layers_") and f["fallbacks"][0] not in (
+        "2_layers_default", "2_layers_rim_heights_inside"), f["attempts"]
+    assert not f["fidelity_passed"] and f["coverage"] > 0.9
+
+
 def _plate_on_bone(thickness_mm: float) -> sitk.Image:
     """A flat medial tibial cartilage disc (radius 9 mm, ``thickness_mm`` thick) on a block of tibia,
     0.25 mm voxels."""
@@ -262,7 +276,7 @@ def test_a_cartilage_too_thin_for_its_layers_is_meshed_in_fewer_and_says_so():
     from kneemesh_core.job.verdict import tissue_verdict
 
     f = mesh_cartilage(_plate_on_bone(0.5), "medial_tibial_cartilage").facts
-    assert (f["n_layers"], f["layers_asked"]) == (2, 4) and f["fallbacks"] == ["fewer_layers"], f["attempts"]
+    assert (f["n_layers"], f["layers_asked"]) == (2, 4) and f["fallbacks"] == ["2_layers_default"], f["attempts"]
     assert f["gate_passed"] and f["fidelity_passed"] and abs(f["median_thickness_mm"] - 0.5) < 0.1
     status, reasons = tissue_verdict(False, f)
     assert status == "review" and reasons == [
