@@ -67,8 +67,7 @@ def plan(options: JobOptions) -> list[tuple[str, ...]]:
     stages.append((REPORT,))
     if options.bundle:
         stages.append((BUNDLE,))
-    order = start_order(stages)
-    return [tuple(sorted(stage, key=order.index)) for stage in stages]
+    return [tuple(sorted(stage, key=_first)) for stage in stages]
 
 
 def needs(stages: list[tuple[str, ...]]) -> dict[str, set[str]]:
@@ -170,8 +169,12 @@ def _run(out_dir: str | os.PathLike, step: str, options: dict, input_path: str |
 FIRST = (*(hex_step(c) for c in CARTILAGES), *BONES, "femoral_cartilage", ANATOMY)
 
 
+def _first(step: str) -> int:
+    """Where a step stands among those of its stage: those of :data:`FIRST` first, in its order."""
+    return FIRST.index(step) if step in FIRST else len(FIRST)
+
+
 def start_order(stages: list[tuple[str, ...]]) -> list[str]:
-    """Every step of ``stages``, in the order a runner starts those that are ready: stage by stage,
-    and within a stage those of :data:`FIRST` first, in its order."""
-    rank = {s: (i, FIRST.index(s) if s in FIRST else len(FIRST)) for i, stage in enumerate(stages) for s in stage}
-    return sorted(rank, key=rank.get)
+    """Every step of ``stages`` (a :func:`plan`, which orders each stage by :data:`FIRST`), in the
+    order a runner starts those that are ready: stage by stage."""
+    return [step for stage in stages for step in stage]
