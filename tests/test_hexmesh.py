@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +19,9 @@ from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.knee import load_knee
 from kneemesh_core.job import JobOptions, run
 from kneemesh_core.tissues import LABEL
+
+#: Regression label maps (tests/data/README.md).
+DATA = Path(__file__).parent / "data"
 
 
 @pytest.fixture(scope="module")
@@ -231,24 +235,25 @@ def test_a_hollow_or_unblended_cartilage_is_review_with_its_reasons_never_ok():
     assert any(r.startswith("femoral_cartilage: covers 62.0%") for r in verdict["reasons"])
 
 
-def test_thick_cartilage_on_steep_bone_still_ships_a_mesh_for_review(phantoms):
+def test_thick_cartilage_on_steep_bone_still_ships_a_mesh_for_review():
     """A thick knee (femoral cartilage 3.7 mm, median) whose notch roof carries it on bone at 56 deg
     to the rays: columns cross there in every attempt of the chain, down to the rim trimmed at 55 deg.
     The last resort trims the rim at 45 deg: a mesh within the gate, short of coverage, for review
-    rather than no femoral cartilage at all."""
-    _, labels = phantoms("left", 0, seed=30585)
+    rather than no femoral cartilage at all (phantom 30585 left severity 0, as generated before its
+    bones stood apart by its cartilage's thickness: tests/data/README.md)."""
+    labels = sitk.ReadImage(str(DATA / "phantom_30585_left_0_femur.nrrd"))
     f = mesh_cartilage(labels, "femoral_cartilage").facts
     assert f["fallbacks"] == ["steep_rim_trimmed"] and f["gate_passed"], f["attempts"]
     assert not f["fidelity_passed"] and f["coverage"] > 0.9
 
 
-def test_thin_cartilage_goes_through_the_whole_chain_in_fewer_layers(phantoms):
+def test_thin_cartilage_goes_through_the_whole_chain_in_fewer_layers():
     """A thin femoral cartilage (median 0.52 mm) whose rim folds over itself (boundary edges crossing)
     in every attempt of the chain in four layers, and in two layers with the default options and
     the rim heights read inside, the only two the thin-cartilage step tried before: the chain in two
     layers finds a mesh within the gate (the smoother surface), short of the label, for review rather
-    than no femoral cartilage."""
-    _, labels = phantoms("right", 3, seed=30782)
+    than no femoral cartilage (phantom 30782 right severity 3, as generated before: tests/data/README.md)."""
+    labels = sitk.ReadImage(str(DATA / "phantom_30782_right_3_femur.nrrd"))
     f = mesh_cartilage(labels, "femoral_cartilage").facts
     assert f["gate_passed"] and f["n_layers"] == 2 and f["layers_asked"] == 4, f["attempts"]
     assert f["fallbacks"][0].startswith("2_layers_") and f["fallbacks"][0] not in (

@@ -67,3 +67,19 @@ def test_severity_removes_cartilage(phantoms):
     s = canonicalise(Volume(severe, "p.nii.gz")).volumes_ml()
     assert s["medial_tibial_cartilage"] < 0.8 * h["medial_tibial_cartilage"]
     assert sum(s[c] for c in CARTILAGES) < sum(h[c] for c in CARTILAGES)
+
+
+@pytest.mark.parametrize("seed,side,severity", [(30969, "left", 0), (30801, "left", 0)])
+def test_cartilages_meet_half_way_and_never_reach_the_other_bone(seed, side, severity):
+    """Where two cartilages meet, each stays on its own bone: a very thick knee (cartilage 1.3 x
+    nominal, seed 30969) stands its bones apart by its cartilage, and the nearer bone's cartilage
+    takes a voxel both shells reach (before, its femoral cartilage ran through the patellar cartilage
+    onto the patella in 205 voxels, and a nominal knee's, seed 30801, in 77)."""
+    _, labels, p = make_phantom(seed, side, severity)
+    arr = sitk.GetArrayViewFromImage(labels)
+    near = lambda lab: ndi.binary_dilation(arr == LABEL[lab])
+    fc = arr == LABEL["femoral_cartilage"]
+    tc = np.isin(arr, [LABEL["medial_tibial_cartilage"], LABEL["lateral_tibial_cartilage"]])
+    assert not (fc & near("patella")).any() and not (fc & near("tibia")).any()
+    assert not (tc & near("femur")).any()
+    assert (fc & near("patellar_cartilage")).sum() > 100  # they do meet

@@ -118,14 +118,18 @@ def knee_fields(u, v, w, p: KneeParams, rng: np.random.Generator) -> dict[str, n
     """
     s = p.scale
     R_m = p.condyle_radius
-    w_t = -p.tc_mm  # tibial plateau top
+    # the bones stand as far apart as their cartilages are thick: a knee of very thick cartilage has
+    # a wide joint space (with the nominal spacing, a 1.4 x knee's femoral cartilage ran through the
+    # patellar cartilage onto the patella, and its cartilages met in walls no knee has)
+    fc_mm, tc_mm, pc_mm = (t * p.thickness_factor for t in (p.fc_mm, p.tc_mm, p.pc_mm))
+    w_t = -tc_mm  # tibial plateau top
     v_c = -6.0 * s
-    w_c = p.fc_mm + p.gap_mm + R_m
+    w_c = fc_mm + p.gap_mm + R_m
     u_c = 20.0 * s
 
     # pose: varus/valgus about a condylar contact, then flexion about the condylar axis
     pivot_u = -u_c if p.varus_deg >= 0 else u_c
-    uf, wf = _rotate(u, w, -p.varus_deg, pivot_u, p.fc_mm + p.gap_mm)
+    uf, wf = _rotate(u, w, -p.varus_deg, pivot_u, fc_mm + p.gap_mm)
     vf, wf = _rotate(v, wf, p.flexion_deg, v_c, w_c)
 
     # femur, in its own frame
@@ -156,7 +160,7 @@ def knee_fields(u, v, w, p: KneeParams, rng: np.random.Generator) -> dict[str, n
     )
 
     # patella rides in the trochlear groove, moving with the femur
-    v_p = v_tr + 13.5 * s + p.fc_mm + p.pc_mm + 9.5 * s - 2.0
+    v_p = v_tr + 13.5 * s + fc_mm + pc_mm + 9.5 * s - 2.0
     w_p = w_c + 0.45 * R_m + 6 * s
     patella = sdf.ellipsoid(uf, vf, wf, (1.5 * s, v_p, w_p), (21 * s, 9.5 * s, 22 * s))
 
@@ -240,9 +244,12 @@ def build_knee(grid, p: KneeParams, rng: np.random.Generator) -> KneeFields:
     fibula = (f["fibula"] < 0) & (f["tibia"] > 0.8)
     free = (labels == 0) & ~fibula
     tc = free & (f["tc"] < 0)
+    # where two cartilages' shells overlap, the nearer bone's cartilage takes the voxel: they meet
+    # half-way, and neither reaches the other's bone
     fc = free & (f["fc"] < 0) & ~(tc & (f["tibia"] < f["femur"]))
-    pc = free & (f["pc"] < 0) & ~fc
+    pc = free & (f["pc"] < 0) & ~(fc & (f["femur"] < f["patella"]))
     tc &= ~fc
+    fc &= ~pc
     labels[fc] = LABEL["femoral_cartilage"]
     labels[tc & (u < 0)] = LABEL["medial_tibial_cartilage"]
     labels[tc & (u >= 0)] = LABEL["lateral_tibial_cartilage"]
@@ -302,5 +309,5 @@ def _oa_defects(labels, bone_sdf, grid, p: KneeParams, rng: np.random.Generator)
         bu, bv, bw = grid.uvw(*(np.arange(s.start, s.stop, dtype=np.float32) for s in box))
         hit = (((bu - cu) ** 2 + (bv - cv) ** 2 + (bw - cw) ** 2) < r * r) & (labels[box] == lab)
         if not full:  # partial thickness: keep the deep half
-            hit &= bone_sdf[_CART_BONE[lab]][box] > 0.5 * p.tc_mm
+            hit &= bone_sdf[_CART_BONE[lab]][box] > 0.5 * p.tc_mm * p.thickness_factor
         labels[box][hit] = 0
