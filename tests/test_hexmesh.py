@@ -287,6 +287,13 @@ def test_a_cartilage_too_thin_for_its_layers_is_meshed_in_fewer_and_says_so():
     assert status == "review" and reasons == [
         "meshed in 2 element layers, not the 4 asked for: the cartilage (median 0.5 mm thick) is too thin for 4 "
         f"layers of {f['element_size_mm']} mm elements within the edge-ratio target"]
+    assert f["fewer_layers_because"] == "median_thickness"
+    # a median that takes four layers, and no usable mesh in them (phantom 30805 left severity 2 FC): the
+    # reason says so rather than calling the cartilage too thin by its median
+    _, reasons = tissue_verdict(False, {**f, "n_layers": 3, "median_thickness_mm": 0.73,
+                                        "fewer_layers_because": "no_usable_mesh"})
+    assert reasons[0].startswith("meshed in 3 element layers, not the 4 asked for: no attempt in 4 layers gave a mesh "
+                                 "usable for finite elements, although the cartilage's median thickness (0.73 mm)")
     f = mesh_cartilage(_plate_on_bone(1.0), "medial_tibial_cartilage").facts
     assert f["n_layers"] == 4 and "layers_asked" not in f and f["gate_passed"] and f["fidelity_passed"]
 

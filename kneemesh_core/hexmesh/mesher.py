@@ -317,6 +317,8 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
         # half (phantom 30805 left severity 2 FC: median 0.73 mm, a quarter under 0.36 mm; 1-5 % of
         # elements beyond the edge ratio and its rim crossing itself in every attempt in 4 layers)
         layers = layers_that_fit(best.footprint, opts.element_size)
+        # why, for the report: thin by its median, or (a median that fits) no usable mesh in the layers asked
+        fewer_because = "median_thickness" if layers < opts.layers else "no_usable_mesh"
         if not best.usable:
             layers = min(layers, opts.layers - 1)
         if 1 <= layers < opts.layers:
@@ -326,8 +328,8 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
     layers = int(best.mesh.node_layer.max())
     facts = {
         "n_layers": layers,
-        **({"layers_asked": opts.layers, "median_thickness_mm": round(median_thickness(best.footprint), 3)}
-           if layers != opts.layers else {}),
+        **({"layers_asked": opts.layers, "fewer_layers_because": fewer_because,
+            "median_thickness_mm": round(median_thickness(best.footprint), 3)} if layers != opts.layers else {}),
         "element_size_mm": round(float(np.median(_inplane_edges(best.mesh))), 4),
         **best.summary,
         **best.fidelity,
