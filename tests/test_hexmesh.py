@@ -286,7 +286,7 @@ def test_a_cartilage_too_thin_for_its_layers_is_meshed_in_fewer_and_says_so():
     status, reasons = tissue_verdict(False, f)
     assert status == "review" and reasons == [
         "meshed in 2 element layers, not the 4 asked for: the cartilage (median 0.5 mm thick) is too thin for 4 "
-        f"layers of {f['element_size_mm']} mm elements within the edge-ratio target"]
+        "layers of 1 mm elements within the edge-ratio target"]
     assert f["fewer_layers_because"] == "median_thickness"
     # a median that takes four layers, and no usable mesh in them (phantom 30805 left severity 2 FC): the
     # reason says so rather than calling the cartilage too thin by its median

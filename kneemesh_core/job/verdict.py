@@ -59,8 +59,9 @@ def cartilage_reasons(e: dict) -> list[str]:
                        f"although the cartilage's median thickness ({e['median_thickness_mm']} mm) would take them: "
                        "thinner parts kept their elements beyond the edge-ratio target or folded its rim")
         else:
+            size = e.get("element_size_asked_mm", e["element_size_mm"])
             out.append(fewer + f"the cartilage (median {e['median_thickness_mm']} mm thick) is too thin for "
-                       f"{e['layers_asked']} layers of {e['element_size_mm']} mm elements within the edge-ratio target")
+                       f"{e['layers_asked']} layers of {size:g} mm elements within the edge-ratio target")
     # the fidelity targets judge the mesh before its edge blend (its figures under "gate" once the
     # headline figures are the shipped file's), and the blended file beyond the rim the blend reshapes
     swept = {**e, **{k: gate[k] for k in FIGURES if k in gate}}
