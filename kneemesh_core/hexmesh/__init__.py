@@ -26,9 +26,15 @@ options, the verdicts) loads no meshing code, so a runner can start its workers,
 mesher, while it reads the input (:mod:`kneemesh_core.job.local`).
 """
 
-import lazy_loader
+import importlib
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
-    "options": ["BlendOptions", "HexOptions"],
-    "mesher": ["CartilageMesh", "FALLBACKS", "NARROWING", "WIDENING", "blend_cartilage", "mesh_cartilage"],
-})
+#: name -> the module that defines it
+_EXPORTS = {"BlendOptions": "options", "HexOptions": "options", "CartilageMesh": "mesher", "FALLBACKS": "mesher",
+            "NARROWING": "mesher", "WIDENING": "mesher", "blend_cartilage": "mesher", "mesh_cartilage": "mesher"}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)

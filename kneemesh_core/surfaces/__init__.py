@@ -10,7 +10,14 @@ The names below load on first use, so that :mod:`.masks` or :mod:`.options` alon
 knee's labels, a job's options) loads no VTK filters or remeshing.
 """
 
-import lazy_loader
+import importlib
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
-    "bones": ["bone_mesh"], "isosurface": ["mask_surface"], "masks": ["CleanMask", "clean_mask"]})
+#: name -> the module that defines it
+_EXPORTS = {"bone_mesh": "bones", "mask_surface": "isosurface", "clean_mask": "masks", "CleanMask": "masks"}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
