@@ -68,8 +68,7 @@ def test_the_blend_is_judged_beyond_the_rim_it_reshapes(blended):
     import dataclasses
 
     from kneemesh_core.hexmesh.blend import node_rings
-    from kneemesh_core.hexmesh.fidelity import fidelity
-    from kneemesh_core.hexmesh.targets import beyond_rim_checks
+    from kneemesh_core.hexmesh.fidelity import beyond_rim_checks, fidelity
 
     name, raw, cm, bone = blended
     rim = cm.facts["blend"]["beyond_rim"]

@@ -21,25 +21,6 @@ def test_version_and_help():
     assert "inspect" in run("--help").stdout
 
 
-def test_the_runner_reads_the_input_without_the_meshing_code(tmp_path):
-    """The command line and the job runner up to the end of the ingest load no meshing code (VTK
-    filters, Embree, numba, the mesher): the runner's workers load it meanwhile, on the core the
-    ingest leaves idle; the first step after it loads it where it runs."""
-    heavy = ("numba", "trimesh", "pyacvd", "pymeshfix", "kneemesh_core.hexmesh.mesher", "kneemesh_core.job.steps")
-    code = f"""
-import sys
-import kneemesh.cli
-from kneemesh_core.job import INGEST, JobOptions, run_step
-run_step({str(tmp_path)!r}, INGEST, JobOptions().to_dict(), {str(SAMPLE)!r})
-print(sorted(m for m in {heavy!r} if m in sys.modules))
-run_step({str(tmp_path)!r}, "tibia", JobOptions().to_dict())
-print("kneemesh_core.job.steps" in sys.modules)
-"""
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
-    assert r.stdout.split("\n")[:2] == ["[]", "True"], r.stdout
-
-
 def test_inspect_json_real_left_and_sample():
     info = json.loads(run("inspect", real(PYMSKT_LEFT), "--json").stdout)
     assert info["preset"] == "pymskt" and info["side"] == "left"

@@ -98,7 +98,7 @@ def test_phantom_plates_with_defects_pass_gate(phantoms, side):
 
     (Coverage is held to 0.95, not 0.97: the right lateral plate's defect walls leave it at 0.957
     on every attempt - an open item; the other three plates meet every fidelity target.)"""
-    from kneemesh_core.hexmesh.targets import fidelity_checks
+    from kneemesh_core.hexmesh.fidelity import fidelity_checks
     from kneemesh_core.io import Volume
     from kneemesh_core.knee import canonicalise
 

@@ -19,22 +19,12 @@ The steps, one module each, in the order they run:
    it; :mod:`.conform` - the bone gives way where a cartilage still dips into it.
 
 :mod:`.mesher` runs steps 1-6 with a fallback chain (:func:`mesh_cartilage`) and
-checks the blend (:func:`blend_cartilage`); :mod:`.options` holds what each can be asked for.
-
-The names below load on first use: importing :mod:`.options` or :mod:`.targets` alone (the job's
-options, the verdicts) loads no meshing code, so a runner can start its workers, which import the
-mesher, while it reads the input (:mod:`kneemesh_core.job.local`).
+checks the blend (:func:`blend_cartilage`).
 """
 
-import importlib
+from kneemesh_core.hexmesh.blend import BlendOptions
+from kneemesh_core.hexmesh.mesher import (FALLBACKS, NARROWING, WIDENING, CartilageMesh, HexOptions, blend_cartilage,
+                                          mesh_cartilage)
 
-#: name -> the module that defines it
-_EXPORTS = {"BlendOptions": "options", "HexOptions": "options", "CartilageMesh": "mesher", "FALLBACKS": "mesher",
-            "NARROWING": "mesher", "WIDENING": "mesher", "blend_cartilage": "mesher", "mesh_cartilage": "mesher"}
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+__all__ = ["BlendOptions", "CartilageMesh", "FALLBACKS", "HexOptions", "NARROWING", "WIDENING", "blend_cartilage",
+           "mesh_cartilage"]

@@ -47,11 +47,22 @@ from scipy.spatial import cKDTree
 from kneemesh_core.geometry import interpolate_layers, quad_node_normals, unit
 from kneemesh_core.hexmesh.extrude import HexMesh
 from kneemesh_core.hexmesh.optimize import independent, layer_quality
-from kneemesh_core.hexmesh.options import BlendOptions
 from kneemesh_core.hexmesh.quadmesh import quad_edges
 from kneemesh_core.hexmesh.quality import crossing_nodes
 from kneemesh_core.hexmesh.targets import BLEND_MIN_SCALED_JACOBIAN, FUSED_TOL_MM, MIN_SCALED_JACOBIAN
 from kneemesh_core.surfaces.metrics import signed_distance
+
+
+@dataclasses.dataclass(frozen=True)
+class BlendOptions:
+    angle_deg: float = 45.0
+    bone_share: float = 0.8
+    rings: int = 3
+    edge_height: float = 0.3
+    edge_floor: float = MIN_SCALED_JACOBIAN  # the outermost ring's floor while blending
+    fuse_max_mm: float = 1.5
+    max_backoffs: int = 10
+    backoffs_per_column: int = 5
 
 
 def _layer0_quads(hm: HexMesh) -> np.ndarray:

@@ -9,8 +9,13 @@ from scipy.spatial import cKDTree
 from kneemesh_core.hexmesh.blend import node_rings
 from kneemesh_core.hexmesh.extrude import HexMesh
 from kneemesh_core.hexmesh.quality import boundary_surface, to_grid
-from kneemesh_core.hexmesh.targets import COVERAGE_TOL_MM
+from kneemesh_core.hexmesh.targets import (COVERAGE_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM,
+                                           MIN_COVERAGE, VOLUME_TOL)
 from kneemesh_core.surfaces.metrics import distance_to_surface, within
+
+#: The figures of a :func:`fidelity` result that the targets read, headline figures of a shipped mesh.
+FIGURES = ("volume_ml", "volume_error", "coverage", "surface_deviation_mm")
+
 
 def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float, unblended: HexMesh | None = None,
              rings: int = 0) -> dict:
@@ -78,3 +83,25 @@ def _beyond_rim(hm: HexMesh, unblended: HexMesh, surface: pv.PolyData, centres: 
     return {"rings": int(rings), "rim_area_fraction": round(float(area[excused].sum() / area.sum()), 4),
             "coverage": round(float(area[covered | excused].sum() / area.sum()), 4),
             "surface_deviation_mm": _deviation(dev)}
+
+
+def fidelity_checks(f: dict) -> dict[str, bool]:
+    """Each fidelity target of a :func:`fidelity` result, met or not."""
+    return {"volume": abs(f["volume_error"]) <= VOLUME_TOL, **beyond_rim_checks(f)}
+
+
+def passes_fidelity(f: dict) -> bool:
+    return all(fidelity_checks(f).values())
+
+
+def beyond_rim_checks(r: dict) -> dict[str, bool]:
+    """The coverage and deviation targets, met or not, of a ``beyond_rim`` result (or of a
+    :func:`fidelity` result: the targets but the volume)."""
+    return {"coverage": r["coverage"] >= MIN_COVERAGE,
+            "deviation_median": r["surface_deviation_mm"]["median"] <= MAX_DEVIATION_MEDIAN_MM,
+            "deviation_p95": r["surface_deviation_mm"]["p95"] <= MAX_DEVIATION_P95_MM}
+
+
+def short_of_footprint(f: dict) -> bool:
+    """Whether a mesh misses fidelity by covering too little: coverage or volume too low."""
+    return f["coverage"] < MIN_COVERAGE or f["volume_error"] < -VOLUME_TOL

@@ -1,6 +1,5 @@
 """Every target a cartilage mesh is held to, in one place: the mesher, the blend, the reports and
-the tests read them here, and the checks of a result against them (plain functions on the result
-dicts of :func:`.fidelity.fidelity`).
+the tests read them here.
 
 The gate (judged on the swept mesh, before blending) follows Gibbons et al. 2022: no element
 below a scaled Jacobian of 0.5, nothing collapsed or inverted. The fidelity targets say how well
@@ -53,31 +52,3 @@ BLEND_FRAC_GOOD = 0.99
 #: A bone-side node this close to the bone counts as fused, and no node may lie deeper than this
 #: inside its bone, mm.
 FUSED_TOL_MM = 0.05
-
-
-# -- the checks ---------------------------------------------------------------------------------
-#: The figures of a :func:`.fidelity.fidelity` result that the targets read, headline figures of a
-#: shipped mesh.
-FIGURES = ("volume_ml", "volume_error", "coverage", "surface_deviation_mm")
-
-
-def fidelity_checks(f: dict) -> dict[str, bool]:
-    """Each fidelity target of a :func:`.fidelity.fidelity` result, met or not."""
-    return {"volume": abs(f["volume_error"]) <= VOLUME_TOL, **beyond_rim_checks(f)}
-
-
-def passes_fidelity(f: dict) -> bool:
-    return all(fidelity_checks(f).values())
-
-
-def beyond_rim_checks(r: dict) -> dict[str, bool]:
-    """The coverage and deviation targets, met or not, of a ``beyond_rim`` result (or of a
-    :func:`.fidelity.fidelity` result: the targets but the volume)."""
-    return {"coverage": r["coverage"] >= MIN_COVERAGE,
-            "deviation_median": r["surface_deviation_mm"]["median"] <= MAX_DEVIATION_MEDIAN_MM,
-            "deviation_p95": r["surface_deviation_mm"]["p95"] <= MAX_DEVIATION_P95_MM}
-
-
-def short_of_footprint(f: dict) -> bool:
-    """Whether a mesh misses fidelity by covering too little: coverage or volume too low."""
-    return f["coverage"] < MIN_COVERAGE or f["volume_error"] < -VOLUME_TOL

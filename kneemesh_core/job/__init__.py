@@ -2,16 +2,11 @@
 
 - :mod:`.options` - what a user can ask (:class:`JobRequest`) and what the steps are told
   (:class:`JobOptions`);
-- :mod:`.ingest` - the steps that read the input: ingest, segment;
-- :mod:`.steps` - what runs on one knee after them: mesh a tissue (a cartilage: mesh, then blend), conform, anatomy, decks,
+- :mod:`.steps` - what runs on one knee: ingest, segment, mesh a tissue (a cartilage: mesh, then blend), conform, anatomy, decks,
   overlaps, simulate;
 - :mod:`.plan` - the stages in order, what each step waits for, and :func:`run_step`, which runs and records one step;
 - :mod:`.outputs` - the job folder: file names, step records, ``report.json``, the bundle;
 - :mod:`.local` - the in-process runner (:func:`run`).
-
-All of these load without the meshing code: only :mod:`.steps` (everything after the input steps of
-:mod:`.ingest`) imports it, when a step first needs it, so the in-process runner's workers load it
-while the runner reads the input.
 """
 
 from kneemesh_core.job.local import JobCancelled, run

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import importlib
 import os
 import shutil
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
@@ -55,10 +54,7 @@ def run(
     order = start_order(stages)
     own_pool = pool is None and workers > 1
     if own_pool:
-        # the workers start now and load the meshing code while this process reads the input (on one
-        # core, the other idle): 0.5-0.7 s that the job no longer waits for
-        pool = ProcessPoolExecutor(max_workers=workers, initializer=_load_steps)
-        pool.submit(_load_steps)
+        pool = ProcessPoolExecutor(max_workers=workers)
     done: set[str] = set()
     running: dict[Future, str] = {}
     try:
@@ -83,11 +79,6 @@ def run(
         if own_pool:
             pool.shutdown()
     return read_json(Path(out_dir) / REPORT_FILE)
-
-
-def _load_steps() -> None:
-    """Import the steps after ingest (and with them the meshing code) into a worker."""
-    importlib.import_module("kneemesh_core.job.steps")
 
 
 def _outcome(record: dict) -> str:

@@ -14,8 +14,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from kneemesh_core.errors import KneeMeshError
-from kneemesh_core.hexmesh.options import BlendOptions, HexOptions
-from kneemesh_core.surfaces.options import SurfaceOptions
+from kneemesh_core.hexmesh import BlendOptions, HexOptions
+from kneemesh_core.surfaces.tissue import SurfaceOptions
 from kneemesh_core.tissues import BONES, CARTILAGES, TISSUES
 
 INPUT_TYPES = ("labels", "image")

@@ -38,11 +38,6 @@ BUNDLED = (LABELS_FILE, JOB_FILE, REPORT_FILE, ATTACHMENTS_FILE, ATTACHMENTS_FIG
            *(f"fe/{sub}*.{ext}" for sub in ("", "smoke/") for ext in ("inp", "json", "png")))
 
 
-def hex_step(cartilage: str) -> str:
-    """The name of the step that meshes a cartilage before the cartilage's own step blends it."""
-    return f"hex_{cartilage}"
-
-
 def utc_now() -> str:
     """The time now, UTC, ISO 8601 to the millisecond (the stamps of step and job records)."""
     return dt.datetime.now(dt.timezone.utc).isoformat(timespec="milliseconds")

@@ -32,8 +32,9 @@ import time
 
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.job.options import JobOptions
-from kneemesh_core.job.ingest import ingest, segment_input
-from kneemesh_core.job.outputs import bundle, hex_step, read_step, utc_now, write_report, write_step
+from kneemesh_core.job.outputs import bundle, read_step, utc_now, write_report, write_step
+from kneemesh_core.job.steps import (conform_bones, hex_cartilage, hex_step, ingest, measure_overlaps, mesh_tissue,
+                                    place_anatomy, run_simulation, segment_input, write_decks)
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, TISSUES
 
 INGEST, SEGMENT, CONFORM, ANATOMY, DECKS, OVERLAPS, SIMULATE, REPORT, BUNDLE = (
@@ -127,28 +128,24 @@ def run_step(
 
 def _run(out_dir: str | os.PathLike, step: str, options: dict, input_path: str | os.PathLike | None) -> dict:
     """The work of one step after ingest; returns its result."""
+    if step in TISSUES:
+        return mesh_tissue(out_dir, step, options)
+    if step in HEX_STEPS:
+        return hex_cartilage(out_dir, HEX_STEPS[step], options)
     if step == SEGMENT:
         if input_path is None:
             raise KneeMeshError("bad_option", "the segment step needs the input image.")
         return segment_input(input_path, out_dir, JobOptions.from_dict(options))
-    # imported here, not at the top: the steps load the meshing code (VTK filters, Embree, numba:
-    # 0.5-0.7 s), which the runner's own process, reading the input, must not wait for
-    from kneemesh_core.job import steps
-
-    if step in TISSUES:
-        return steps.mesh_tissue(out_dir, step, options)
-    if step in HEX_STEPS:
-        return steps.hex_cartilage(out_dir, HEX_STEPS[step], options)
     if step == CONFORM:
-        return steps.conform_bones(out_dir, options)
+        return conform_bones(out_dir, options)
     if step == ANATOMY:
-        return steps.place_anatomy(out_dir, options)
+        return place_anatomy(out_dir, options)
     if step == DECKS:
-        return steps.write_decks(out_dir, options)
+        return write_decks(out_dir, options)
     if step == OVERLAPS:
-        return steps.measure_overlaps(out_dir)
+        return measure_overlaps(out_dir)
     if step == SIMULATE:
-        return steps.run_simulation(out_dir, options)
+        return run_simulation(out_dir, options)
     if step == REPORT:
         opts = JobOptions.from_dict(options)
         entries = {t: read_step(out_dir, t)["result"] for t in opts.tissues()}

@@ -1,5 +1,4 @@
-"""What runs on one knee after its input is read (:mod:`.ingest`): each function is one step of the
-plan, working in the job folder.
+"""What runs on one knee: each function is one step of the plan, working in the job folder.
 
 Every argument is a path, a name or a plain dict, so a queue can carry it.  A tissue step
 never raises: its failure is its report entry (a failed tissue never sinks the knee).
@@ -15,21 +14,78 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
+from kneemesh_core import __version__
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.hexmesh import CartilageMesh, blend_cartilage, mesh_cartilage
 from kneemesh_core.hexmesh.quality import boundary_crossings, summary
-from kneemesh_core.hexmesh.targets import FIGURES
+from kneemesh_core.hexmesh.fidelity import FIGURES
 from kneemesh_core.hexmesh.conform import conform_bone
-from kneemesh_core.io import read_label_map, voxel_to_lps
+from kneemesh_core.io import read_label_map, read_volume, voxel_to_lps, write_image
 from kneemesh_core.io.files import atomic_path
-from kneemesh_core.job.options import JobOptions
+from kneemesh_core.job.options import INPUT_TYPES, JobOptions
 from kneemesh_core.job.verdict import tissue_verdict
 from kneemesh_core.job.outputs import (ATTACHMENTS_FIGURE, ATTACHMENTS_FILE, JOB_FILE, LABELS_FILE, MESHES_DIR,
-                                       SURFACES_DIR, WORK_DIR, hex_step, load_unblended, read_json, read_step,
-                                       save_mesh, save_unblended, write_json)
+                                       SURFACES_DIR, WORK_DIR, load_unblended, read_json, read_step, save_mesh,
+                                       save_unblended, write_json)
+from kneemesh_core.knee import canonicalise, describe, describe_image
 from kneemesh_core.metrics.overlap import knee_overlaps
 from kneemesh_core.surfaces.tissue import reconstruct_bone
-from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, LABEL
+from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, LABEL, resolve_convention
+
+
+def hex_step(cartilage: str) -> str:
+    """The name of the step that meshes a cartilage before the cartilage's own step blends it."""
+    return f"hex_{cartilage}"
+
+
+def ingest(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: JobOptions) -> dict:
+    """Validate the input and write canonical labels and ``job.json``.
+
+    Nothing is written unless the input is valid.
+    """
+    options.tissues()
+    if options.input_type not in INPUT_TYPES:
+        raise KneeMeshError("bad_option", f"input type {options.input_type!r}: expected one of {', '.join(INPUT_TYPES)}.")
+    knee = None
+    if options.input_type == "image":  # checked here, segmented by the segment step
+        from kneemesh_core.segmentation.infer import SegmentationModel
+
+        vol = read_volume(input_path)
+        SegmentationModel.load(options.model)  # a missing or foreign model fails here, before anything is queued
+        description = describe_image(vol.image, vol.source)
+    else:
+        knee = canonicalise(read_label_map(input_path), resolve_convention(options.preset, options.labels), options.side)
+        description = describe(knee)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if knee is not None:
+        write_image(knee.labels, out / LABELS_FILE)
+    job = {"kneemesh_version": __version__, "input": description, "options": options.to_dict()}
+    write_json(out / JOB_FILE, job)
+    return job
+
+
+def segment_input(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: JobOptions) -> dict:
+    """Image inputs: segment the image into canonical labels ``labels.nrrd``; ``job.json`` gains the
+    knee's description and the segmentation's facts.  Returns the report's ``segmentation`` entry:
+    ``review`` with the reasons when the labels are not a plausible knee
+    (:mod:`kneemesh_core.segmentation.plausibility`)."""
+    from kneemesh_core.segmentation.infer import SegmentationModel, segment
+    from kneemesh_core.segmentation.plausibility import check, figures
+
+    out = Path(out_dir)
+    model = SegmentationModel.load(options.model)
+    result = segment(read_volume(input_path), model, side=options.side)
+    write_image(result.knee.labels, out / LABELS_FILE)
+    job = read_json(out / JOB_FILE)
+    facts = {"model": model.path.name, "model_version": model.meta.get("version"), "seconds": result.seconds,
+             "image": job["input"]}
+    job["input"] = {**describe(result.knee), "preset": "segmented", "segmentation": facts}
+    write_json(out / JOB_FILE, job)
+    plausibility = figures(result.knee.labels)
+    status, reasons = check(plausibility)
+    return {"status": status, "reasons": reasons, "side": result.knee.side, "seconds": result.seconds["total"],
+            "tissues_ml": job["input"]["tissues"], "plausibility": plausibility}
 
 
 def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:

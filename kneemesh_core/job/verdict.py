@@ -8,10 +8,10 @@ misses a fidelity or plausibility target; ``failed`` means there is no usable fi
 
 from __future__ import annotations
 
-from kneemesh_core.hexmesh.targets import (FIGURES, FUSED_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM,
-                                           MAX_EDGE_RATIO, MAX_FRAC_EDGE_RATIO, MIN_COVERAGE, MIN_SCALED_JACOBIAN,
-                                           USABLE_FRAC_BELOW, USABLE_FRAC_EDGE_RATIO, USABLE_MIN_SCALED_JACOBIAN, VOLUME_TOL,
-                                           fidelity_checks)
+from kneemesh_core.hexmesh.fidelity import FIGURES, fidelity_checks
+from kneemesh_core.hexmesh.targets import (FUSED_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM, MAX_EDGE_RATIO,
+                                           MAX_FRAC_EDGE_RATIO, MIN_COVERAGE, MIN_SCALED_JACOBIAN, USABLE_FRAC_BELOW,
+                                           USABLE_FRAC_EDGE_RATIO, USABLE_MIN_SCALED_JACOBIAN, VOLUME_TOL)
 
 OK, REVIEW, FAILED = "ok", "review", "failed"
 _RANK = {OK: 0, REVIEW: 1, FAILED: 2}

@@ -3,6 +3,8 @@ hex mesher builds on (the one recipe for each)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pyvista as pv
 import SimpleITK as sitk
 
@@ -11,8 +13,21 @@ from kneemesh_core.surfaces.bones import bone_mesh
 from kneemesh_core.surfaces.isosurface import mask_surface
 from kneemesh_core.surfaces.masks import CleanMask, clean_mask
 from kneemesh_core.surfaces.metrics import edges_mm, surface_distance, topology
-from kneemesh_core.surfaces.options import SurfaceOptions
 from kneemesh_core.tissues import BONES, LABEL
+
+
+@dataclasses.dataclass(frozen=True)
+class SurfaceOptions:
+    """Bone meshing parameters (the paper's defaults)."""
+
+    bone_edge_mm: float = 3.0
+    # The paper closes bone with a 3-voxel kernel. On manual OAI labels that fills the
+    # slice-to-slice jaggedness and pushes the surface outwards: 42 real knees measured
+    # 0.189 -> 0.179 mm mean and 0.527 -> 0.500 mm p95 distance to the label without it.
+    # Internal cavities are filled instead; set 3 for the paper's behaviour.
+    bone_closing_voxels: int = 0
+    bone_smoothing_iterations: int = 10
+    bone_pass_band: float = 0.1
 
 
 def label_surface(labels: sitk.Image, tissue: str) -> pv.PolyData:

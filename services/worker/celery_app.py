@@ -26,7 +26,6 @@ from celery import Celery, chain, group
 from celery.exceptions import Ignore
 from kombu.exceptions import OperationalError
 
-import kneemesh_core.job.steps  # noqa: F401 - the meshing code, loaded once at boot and shared by the forked pool
 from kneemesh_core.job import JobOptions, plan, run_step
 from services.jobs import Jobs
 from services.settings import Settings
