@@ -75,7 +75,7 @@ def test_cartilages_meet_half_way_and_never_reach_the_other_bone(seed, side, sev
     nominal, seed 30969) stands its bones apart by its cartilage, and the nearer bone's cartilage
     takes a voxel both shells reach (before, its femoral cartilage ran through the patellar cartilage
     onto the patella in 205 voxels, and a nominal knee's, seed 30801, in 77)."""
-    _, labels, p = make_phantom(seed, side, severity)
+    _, labels, _ = make_phantom(seed, side, severity)
     arr = sitk.GetArrayViewFromImage(labels)
     near = lambda lab: ndi.binary_dilation(arr == LABEL[lab])
     fc = arr == LABEL["femoral_cartilage"]

@@ -54,14 +54,13 @@ def cartilage_reasons(e: dict) -> list[str]:
                    f"{MIN_SCALED_JACOBIAN}, at most {USABLE_FRAC_EDGE_RATIO:.0%} above the edge ratio)")
     if "layers_asked" in e:
         fewer = f"meshed in {e['n_layers']} element layers, not the {e['layers_asked']} asked for: "
-        if e.get("fewer_layers_because") == "no_usable_mesh":  # a median that fits can hide a thin part
+        if e["fewer_layers_because"] == "no_usable_mesh":  # a median that fits can hide a thin part
             out.append(fewer + f"no attempt in {e['layers_asked']} layers gave a mesh usable for finite elements, "
                        f"although the cartilage's median thickness ({e['median_thickness_mm']} mm) would take them: "
                        "thinner parts kept their elements beyond the edge-ratio target or folded its rim")
         else:
-            size = e.get("element_size_asked_mm", e["element_size_mm"])
             out.append(fewer + f"the cartilage (median {e['median_thickness_mm']} mm thick) is too thin for "
-                       f"{e['layers_asked']} layers of {size:g} mm elements within the edge-ratio target")
+                       f"{e['layers_asked']} layers of {e['element_size_asked_mm']:g} mm elements within the edge-ratio target")
     # the fidelity targets judge the mesh before its edge blend (its figures under "gate" once the
     # headline figures are the shipped file's), and the blended file beyond the rim the blend reshapes
     swept = {**e, **{k: gate[k] for k in FIGURES if k in gate}}

@@ -41,6 +41,11 @@ class KneeParams:
     #: angle from distal towards posterior deg, radius mm); two close ones leave a narrow strip
     femoral_lesions: tuple = ()
 
+    def cartilage_mm(self) -> tuple[float, float, float]:
+        """Femoral, tibial and patellar cartilage thicknesses (mm) that set the joint space: the nominal
+        ones times ``thickness_factor`` (a knee of very thick cartilage has a wide joint space)."""
+        return self.fc_mm * self.thickness_factor, self.tc_mm * self.thickness_factor, self.pc_mm * self.thickness_factor
+
     @classmethod
     def sample(cls, rng: np.random.Generator, severity: int) -> "KneeParams":
         s = rng.uniform(0.88, 1.12)
@@ -118,10 +123,10 @@ def knee_fields(u, v, w, p: KneeParams, rng: np.random.Generator) -> dict[str, n
     """
     s = p.scale
     R_m = p.condyle_radius
-    # the bones stand as far apart as their cartilages are thick: a knee of very thick cartilage has
-    # a wide joint space (with the nominal spacing, a 1.4 x knee's femoral cartilage ran through the
-    # patellar cartilage onto the patella, and its cartilages met in walls no knee has)
-    fc_mm, tc_mm, pc_mm = (t * p.thickness_factor for t in (p.fc_mm, p.tc_mm, p.pc_mm))
+    # the bones stand as far apart as their cartilages are thick (with the nominal spacing, a 1.4 x
+    # knee's femoral cartilage ran through the patellar cartilage onto the patella, and its cartilages
+    # met in walls no knee has)
+    fc_mm, tc_mm, pc_mm = p.cartilage_mm()
     w_t = -tc_mm  # tibial plateau top
     v_c = -6.0 * s
     w_c = fc_mm + p.gap_mm + R_m
@@ -309,5 +314,5 @@ def _oa_defects(labels, bone_sdf, grid, p: KneeParams, rng: np.random.Generator)
         bu, bv, bw = grid.uvw(*(np.arange(s.start, s.stop, dtype=np.float32) for s in box))
         hit = (((bu - cu) ** 2 + (bv - cv) ** 2 + (bw - cw) ** 2) < r * r) & (labels[box] == lab)
         if not full:  # partial thickness: keep the deep half
-            hit &= bone_sdf[_CART_BONE[lab]][box] > 0.5 * p.tc_mm * p.thickness_factor
+            hit &= bone_sdf[_CART_BONE[lab]][box] > 0.5 * p.cartilage_mm()[1]
         labels[box][hit] = 0
