@@ -18,9 +18,13 @@
    be shortened or lengthened by up to 20%, and at last (untangling) its
    articular node may step off the surface by up to 0.4 mm or its bone-side
    node slide along the bone surface, carrying the column.
-5. Articular nodes off the surface settle back onto it wherever the elements
+5. Where the cartilage ends in a wall, the contour's columns lean with it:
+   foot on the wall's foot, head where the wall meets the articular surface
+   (:func:`_to_wall`; the next ring follows half-way), as far as the elements
+   around them allow (:func:`.optimize.settle`).
+6. Articular nodes off the surface settle back onto it wherever the elements
    around them stay good (:func:`.optimize.settle`).
-6. ``layers`` element layers are interpolated linearly along each column.
+7. ``layers`` element layers are interpolated linearly along each column.
 """
 
 from __future__ import annotations
@@ -105,6 +109,101 @@ def _onto_contour(qm: QuadMesh, st: np.ndarray) -> np.ndarray:
         g = qm.sdf_gradient(st[on], on)
         st[on] -= (qm.sdf(st[on], on) / np.maximum((g * g).sum(1), 1e-6))[:, None] * g
     return st
+
+
+#: A rim column follows its cartilage's wall where the wall stands within this angle of the column
+#: (steeper walls end the cartilage; a flatter "wall" is the tapering rim, which ends at the contour).
+WALL_MAX_LEAN_DEG = 35.0
+
+
+def _first_hit(tm, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (N,) along each ray to the first surface it meets (inf where none) and whether that
+    crossing leaves the surface (N,) bool: the ray started inside."""
+    dist = np.full(len(origins), np.inf)
+    leaving = np.zeros(len(origins), bool)
+    tri, ray, loc = tm.ray.intersects_id(origins, np.ascontiguousarray(dirs), multiple_hits=False, return_locations=True)
+    if len(ray):
+        dist[ray] = np.einsum("ij,ij->i", loc - origins[ray], dirs[ray])
+        leaving[ray] = np.einsum("ij,ij->i", tm.face_normals[tri], dirs[ray]) > 0
+    return dist, leaving
+
+
+def _to_wall(tm, bone: np.ndarray, top: np.ndarray, edges: np.ndarray, contour: np.ndarray,
+             reach_mm: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """Where the contour's columns would stand on the cartilage's wall: bone-side and articular
+    nodes (P, 3 each; the others' unchanged).
+
+    The footprint's contour runs at one 2-D point per node, where the rim grows steep or thin; a
+    cartilage that ends in a wall leaning to its bone (a lesion's edge, a cut plate's rim) reaches
+    beyond it at the bone and stops short of it at the joint, and a column standing at that point
+    leaves a wedge uncovered on one side and meshes empty space on the other (Gibbons et al. 2022
+    slant their edge columns the same way).  The wall is found by rays leaving the column outwards
+    (away from its inner neighbours, across the column) at 15 % and 85 % of its height, each to
+    where it leaves the cartilage (or, started outside, back to where it enters), at most
+    ``reach_mm``; the straight line through the two crossings gives the column's new ends.  Where
+    the line leans more than :data:`WALL_MAX_LEAN_DEG` off the column, or a ray finds no wall, the
+    column stays: that is a tapering rim, which ends where the contour runs.
+    """
+    out_bone, out_top = bone.copy(), top.copy()
+    at = np.flatnonzero(contour)
+    if not at.size:
+        return out_bone, out_top
+    inner = ~contour[edges]  # per edge end: not on the contour
+    acc = np.zeros_like(bone)
+    cnt = np.zeros(len(bone))
+    for a, b in ((0, 1), (1, 0)):
+        use = inner[:, b]
+        np.add.at(acc, edges[use, a], bone[edges[use, b]])
+        np.add.at(cnt, edges[use, a], 1.0)
+    at = at[cnt[at] > 0]
+    col = top[at] - bone[at]
+    length = np.linalg.norm(col, axis=1)
+    axis = col / np.maximum(length, 1e-12)[:, None]
+    out = bone[at] - acc[at] / cnt[at, None]
+    out = unit(out - np.einsum("ij,ij->i", out, axis)[:, None] * axis)
+    fracs = np.array([0.15, 0.85])
+    starts = (bone[at][None] + fracs[:, None, None] * col[None]).reshape(-1, 3)
+    dirs = np.tile(out, (2, 1))
+    ahead, leaving = _first_hit(tm, starts, dirs)
+    behind, _ = _first_hit(tm, starts, -dirs)
+    # inside: the wall is the first crossing ahead; outside: the crossing behind, where the ray came in
+    s = np.where(leaving, ahead, -behind).reshape(2, -1)
+    s[np.abs(s) > reach_mm] = np.nan
+    slope = (s[1] - s[0]) / (np.diff(fracs)[0] * np.maximum(length, 1e-12))
+    wall = np.isfinite(slope) & (np.abs(slope) <= np.tan(np.deg2rad(WALL_MAX_LEAN_DEG)))
+    d_bone = s[0] - fracs[0] * slope * length
+    foot = bone[at] + d_bone[:, None] * out
+    # up the wall from its foot to where it meets the articular surface: the contour may run part-way
+    # up a wall whose thickness it took for a tapering rim, and the column then stops on the wall
+    rise = unit(axis + slope[:, None] * out)
+    cos = np.einsum("ij,ij->i", rise, axis)
+    inside = foot - 0.1 * out + 0.1 * rise
+    ahead, leaving = _first_hit(tm, inside, np.nan_to_num(rise))
+    along = np.where(leaving, ahead + 0.1, 0.0)
+    # (never shorter than the column was, nor longer than its inner neighbours' columns reach)
+    reach = np.zeros(len(bone))
+    for a, b in ((0, 1), (1, 0)):
+        use = inner[:, b]
+        np.maximum.at(reach, edges[use, a], np.linalg.norm(top[edges[use, b]] - bone[edges[use, b]], axis=1))
+    along = np.clip(along, length / np.maximum(cos, 0.5), 1.25 * reach[at] / np.maximum(cos, 0.5))
+    head = foot + along[:, None] * rise
+    w = at[wall]
+    out_bone[w] = foot[wall]
+    out_top[w] = head[wall]
+    # the nodes next to them follow half-way (their mean neighbour's move), so the outer ring's
+    # elements lean with the wall rather than shear within it
+    move_bone, move_top, count = np.zeros_like(bone), np.zeros_like(bone), np.zeros(len(bone))
+    moved = np.zeros(len(bone), bool)
+    moved[w] = True
+    for a, b in ((0, 1), (1, 0)):
+        use = moved[edges[:, b]] & ~contour[edges[:, a]]
+        np.add.at(move_bone, edges[use, a], out_bone[edges[use, b]] - bone[edges[use, b]])
+        np.add.at(move_top, edges[use, a], out_top[edges[use, b]] - top[edges[use, b]])
+        np.add.at(count, edges[use, a], 1.0)
+    near = count > 0
+    out_bone[near] += 0.5 * move_bone[near] / count[near, None]
+    out_top[near] += 0.5 * move_top[near] / count[near, None]
+    return out_bone, out_top
 
 
 def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyData, h_mm: float,
@@ -196,10 +295,13 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
         u[slid] = np.stack(slides)[k[slid] - len(tops), at[slid]]
         top, bone = columns[k, at], bottoms[k, at]
     top = _edge_ratio_guard(bone, top, quads, layers)
+    # the contour's columns out to the cartilage's wall, where it ends in one, as far as the elements allow
+    bone_wall, top_wall = _to_wall(tm, bone, top, edges, qm.contour)
+    bone, top = settle(bone, top, top_wall, quads, layers, bottom_target=bone_wall, sweeps=8)
     # articular nodes the rim floor or the untangling lifted off the surface go back onto it
     # wherever the elements around them stay good
     _, closest = surface.find_closest_cell(top, return_closest_point=True)
-    top = settle(bone, top, closest, quads, layers)
+    _, top = settle(bone, top, closest, quads, layers)
 
     points = interpolate_layers(bone, top, layers)
     offsets = (np.arange(layers) * n)[:, None, None]

@@ -5,8 +5,9 @@ inclined to the projection direction; columns along the domain ray never cross
 one another.  Each node picks, among candidate columns (directions blended
 between the two, lengths, untangling steps, slides along the bone), the one
 whose surrounding elements score best (:func:`column_score`: scaled Jacobian,
-then edge ratio), greedily and in a few sweeps; :func:`settle` then takes
-articular nodes back onto the surface where the elements allow.
+then edge ratio), greedily and in a few sweeps; :func:`settle` then moves
+columns towards where they should stand (the rim's onto its wall, articular
+nodes back onto the surface) as far as the elements allow.
 """
 
 from __future__ import annotations
@@ -288,26 +289,29 @@ def choose_columns(bottoms: np.ndarray, tops: np.ndarray, quads: np.ndarray, lay
 
 
 def settle(bottom: np.ndarray, top: np.ndarray, target: np.ndarray, quads: np.ndarray, layers: int,
-           floor: float = 0.55, sweeps: int = 4) -> np.ndarray:
-    """Move articular nodes (P, 3) towards ``target`` (P, 3; their closest surface points) - the
-    whole way, or 2/3 or 1/3 of it - where the worst :func:`column_score` around each stays at
-    least ``floor`` (or does not drop, where it is already below).  Returns the new tops (P, 3).
+           floor: float = 0.55, sweeps: int = 4, bottom_target: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Move columns towards targets - the whole way, or 2/3 or 1/3 of it - where the worst
+    :func:`column_score` around each stays at least ``floor`` (or does not drop, where it is already
+    below).  Returns the new (bottom, top), each (P, 3).
 
-    Rim floors and untangling steps lift a few articular nodes off the surface;
-    this takes back whatever the elements allow.
+    ``target`` (P, 3): where the articular nodes ``top`` should go (their closest surface points:
+    rim floors and untangling steps lift a few of them off the surface, and this takes back whatever
+    the elements allow); ``bottom_target`` (P, 3), where the bone-side nodes should go along with
+    them (by the same fraction; default: they stay).
     """
     n = len(top)
-    top = top.copy()
+    ends = np.stack([bottom, top], axis=1)  # (P, 2, 3)
+    goal = np.stack([bottom if bottom_target is None else bottom_target, target], axis=1)
     fracs = (1 / 3, 2 / 3, 1.0)
     moves = MoveScores(quads, len(fracs), n, lambda c: _column_quads(c, layers))
     for _ in range(sweeps):
-        gap = np.linalg.norm(target - top, axis=1)
+        gap = np.linalg.norm(goal - ends, axis=2).max(1)
         todo = gap > 0.02
         if not todo.any():
             break
-        corners = np.stack([bottom, top], axis=1)[quads]  # (Q, 4, 2, 3)
+        corners = ends[quads]  # (Q, 4, 2, 3)
         current = node_min(_column_quads(corners, layers), quads, n)
-        cands = np.stack([np.stack([bottom, top + frac * (target - top)], axis=1) for frac in fracs])
+        cands = np.stack([ends + frac * (goal - ends) for frac in fracs])
         best_frac = np.zeros(n)
         for frac, score in zip(fracs, moves.scored(corners, cands, todo)):
             ok = todo & (score >= np.minimum(current, floor))
@@ -315,6 +319,6 @@ def settle(bottom: np.ndarray, top: np.ndarray, target: np.ndarray, quads: np.nd
         move = independent(best_frac * gap, quads)
         if not move.any():
             break
-        top[move] += best_frac[move, None] * (target[move] - top[move])
+        ends[move] += best_frac[move, None, None] * (goal[move] - ends[move])
         moves.moved(move)
-    return top
+    return ends[:, 0], ends[:, 1]
