@@ -128,38 +128,49 @@ def _first_hit(tm, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, n
     return dist, leaving
 
 
+def _over_neighbours(values: np.ndarray, edges: np.ndarray, source: np.ndarray, target: np.ndarray,
+                     ufunc=np.add) -> tuple[np.ndarray, np.ndarray]:
+    """Per node (P, ...), ``ufunc`` (add or maximum) folded over the ``values`` (P, ...) of its
+    edge neighbours flagged ``source`` (P,) bool, for the nodes flagged ``target`` (P,) bool (zero
+    elsewhere), and how many neighbours each folded (P,)."""
+    acc = np.zeros_like(values, dtype=float)
+    count = np.zeros(len(values))
+    for a, b in ((0, 1), (1, 0)):
+        use = source[edges[:, b]] & target[edges[:, a]]
+        ufunc.at(acc, edges[use, a], values[edges[use, b]])
+        np.add.at(count, edges[use, a], 1.0)
+    return acc, count
+
+
 def _to_wall(tm, bone: np.ndarray, top: np.ndarray, edges: np.ndarray, contour: np.ndarray,
              reach_mm: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
     """Where the contour's columns would stand on the cartilage's wall: bone-side and articular
-    nodes (P, 3 each; the others' unchanged).
+    nodes (P, 3 each; the others' unchanged but the next ring's).
 
     The footprint's contour runs at one 2-D point per node, where the rim grows steep or thin; a
-    cartilage that ends in a wall leaning to its bone (a lesion's edge, a cut plate's rim) reaches
+    cartilage that ends in a wall leaning over its bone (a lesion's edge, a cut plate's rim) reaches
     beyond it at the bone and stops short of it at the joint, and a column standing at that point
     leaves a wedge uncovered on one side and meshes empty space on the other (Gibbons et al. 2022
     slant their edge columns the same way).  The wall is found by rays leaving the column outwards
     (away from its inner neighbours, across the column) at 15 % and 85 % of its height, each to
     where it leaves the cartilage (or, started outside, back to where it enters), at most
-    ``reach_mm``; the straight line through the two crossings gives the column's new ends.  Where
-    the line leans more than :data:`WALL_MAX_LEAN_DEG` off the column, or a ray finds no wall, the
-    column stays: that is a tapering rim, which ends where the contour runs.
+    ``reach_mm``: the line through the two crossings gives the column's foot on the bone side, and
+    a ray up the wall from there its head, where the wall meets the articular surface (the contour
+    may run part-way up a wall, and the column stop on it).  Where the line leans more than
+    :data:`WALL_MAX_LEAN_DEG` off the column, or a ray finds no wall, the column stays: that is a
+    tapering rim, which ends where the contour runs.  The next ring's nodes follow half-way (their
+    mean neighbour's move), so the outer ring's elements lean with the wall rather than shear.
     """
     out_bone, out_top = bone.copy(), top.copy()
-    at = np.flatnonzero(contour)
+    everywhere = np.ones(len(bone), bool)
+    inner_sum, inner_count = _over_neighbours(bone, edges, ~contour, everywhere)
+    at = np.flatnonzero(contour & (inner_count > 0))
     if not at.size:
         return out_bone, out_top
-    inner = ~contour[edges]  # per edge end: not on the contour
-    acc = np.zeros_like(bone)
-    cnt = np.zeros(len(bone))
-    for a, b in ((0, 1), (1, 0)):
-        use = inner[:, b]
-        np.add.at(acc, edges[use, a], bone[edges[use, b]])
-        np.add.at(cnt, edges[use, a], 1.0)
-    at = at[cnt[at] > 0]
     col = top[at] - bone[at]
     length = np.linalg.norm(col, axis=1)
     axis = col / np.maximum(length, 1e-12)[:, None]
-    out = bone[at] - acc[at] / cnt[at, None]
+    out = bone[at] - inner_sum[at] / inner_count[at, None]
     out = unit(out - np.einsum("ij,ij->i", out, axis)[:, None] * axis)
     fracs = np.array([0.15, 0.85])
     starts = (bone[at][None] + fracs[:, None, None] * col[None]).reshape(-1, 3)
@@ -171,35 +182,20 @@ def _to_wall(tm, bone: np.ndarray, top: np.ndarray, edges: np.ndarray, contour: 
     s[np.abs(s) > reach_mm] = np.nan
     slope = (s[1] - s[0]) / (np.diff(fracs)[0] * np.maximum(length, 1e-12))
     wall = np.isfinite(slope) & (np.abs(slope) <= np.tan(np.deg2rad(WALL_MAX_LEAN_DEG)))
-    d_bone = s[0] - fracs[0] * slope * length
-    foot = bone[at] + d_bone[:, None] * out
-    # up the wall from its foot to where it meets the articular surface: the contour may run part-way
-    # up a wall whose thickness it took for a tapering rim, and the column then stops on the wall
+    at, out, axis, length, s, slope = at[wall], out[wall], axis[wall], length[wall], s[:, wall], slope[wall]
+    foot = bone[at] + (s[0] - fracs[0] * slope * length)[:, None] * out
     rise = unit(axis + slope[:, None] * out)
-    cos = np.einsum("ij,ij->i", rise, axis)
-    inside = foot - 0.1 * out + 0.1 * rise
-    ahead, leaving = _first_hit(tm, inside, np.nan_to_num(rise))
-    along = np.where(leaving, ahead + 0.1, 0.0)
+    cos = np.maximum(np.einsum("ij,ij->i", rise, axis), 0.5)
+    ahead, leaving = _first_hit(tm, foot - 0.1 * out + 0.1 * rise, rise)
     # (never shorter than the column was, nor longer than its inner neighbours' columns reach)
-    reach = np.zeros(len(bone))
-    for a, b in ((0, 1), (1, 0)):
-        use = inner[:, b]
-        np.maximum.at(reach, edges[use, a], np.linalg.norm(top[edges[use, b]] - bone[edges[use, b]], axis=1))
-    along = np.clip(along, length / np.maximum(cos, 0.5), 1.25 * reach[at] / np.maximum(cos, 0.5))
-    head = foot + along[:, None] * rise
-    w = at[wall]
-    out_bone[w] = foot[wall]
-    out_top[w] = head[wall]
-    # the nodes next to them follow half-way (their mean neighbour's move), so the outer ring's
-    # elements lean with the wall rather than shear within it
-    move_bone, move_top, count = np.zeros_like(bone), np.zeros_like(bone), np.zeros(len(bone))
+    reach, _ = _over_neighbours(np.linalg.norm(top - bone, axis=1), edges, ~contour, everywhere, np.maximum)
+    along = np.clip(np.where(leaving, ahead + 0.1, 0.0), length / cos, 1.25 * reach[at] / cos)
+    out_bone[at] = foot
+    out_top[at] = foot + along[:, None] * rise
     moved = np.zeros(len(bone), bool)
-    moved[w] = True
-    for a, b in ((0, 1), (1, 0)):
-        use = moved[edges[:, b]] & ~contour[edges[:, a]]
-        np.add.at(move_bone, edges[use, a], out_bone[edges[use, b]] - bone[edges[use, b]])
-        np.add.at(move_top, edges[use, a], out_top[edges[use, b]] - top[edges[use, b]])
-        np.add.at(count, edges[use, a], 1.0)
+    moved[at] = True
+    move_bone, count = _over_neighbours(out_bone - bone, edges, moved, ~contour)
+    move_top, _ = _over_neighbours(out_top - top, edges, moved, ~contour)
     near = count > 0
     out_bone[near] += 0.5 * move_bone[near] / count[near, None]
     out_top[near] += 0.5 * move_top[near] / count[near, None]
