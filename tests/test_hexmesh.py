@@ -266,24 +266,12 @@ def test_thin_cartilage_goes_through_the_whole_chain_in_fewer_layers():
     assert not f["fidelity_passed"] and f["coverage"] > 0.9
 
 
-def _plate_on_bone(thickness_mm: float) -> sitk.Image:
-    """A flat medial tibial cartilage disc (radius 9 mm, ``thickness_mm`` thick) on a block of tibia,
-    0.25 mm voxels."""
+def _plate_on_bone(thickness_mm: float, lean_deg: float = 0.0) -> sitk.Image:
+    """A flat medial tibial cartilage disc (radius 9 mm at the bone, ``thickness_mm`` thick) on a block
+    of tibia, its wall leaning ``lean_deg`` inwards from the bone normal (less radius at the joint: a
+    lesion's or a cut plate's edge), 0.25 mm voxels."""
     sp = 0.25
     z, y, x = np.mgrid[0:48, 0:100, 0:100] * sp
-    labels = np.where(z < 6, LABEL["tibia"], 0).astype(np.uint8)
-    labels[(z >= 6) & (z < 6 + thickness_mm) & (np.hypot(x - 12.5, y - 12.5) < 9)] = LABEL["medial_tibial_cartilage"]
-    image = sitk.GetImageFromArray(labels)
-    image.SetSpacing((sp, sp, sp))
-    return image
-
-
-def _frustum_on_bone(lean_deg: float, thickness_mm: float = 3.0) -> sitk.Image:
-    """A medial tibial cartilage plate on a block of tibia whose wall leans ``lean_deg`` inwards from
-    the bone normal (radius 9 mm at the bone, less at the joint: a lesion's or a cut plate's edge),
-    0.25 mm voxels."""
-    sp = 0.25
-    z, y, x = (np.mgrid[0:56, 0:100, 0:100] + 0.5) * sp
     labels = np.where(z < 6, LABEL["tibia"], 0).astype(np.uint8)
     radius = 9.0 - (z - 6.0) * np.tan(np.deg2rad(lean_deg))
     labels[(z >= 6) & (z < 6 + thickness_mm) & (np.hypot(x - 12.5, y - 12.5) < radius)] = LABEL["medial_tibial_cartilage"]
@@ -300,7 +288,7 @@ def test_rim_columns_lean_with_a_leaning_wall(lean_deg):
     and 10 % of its volume out; the wall found by rays across the column, the plate is covered.)"""
     from kneemesh_core.hexmesh.fidelity import fidelity_checks
 
-    cm = mesh_cartilage(_frustum_on_bone(lean_deg), "medial_tibial_cartilage", HexOptions(fallbacks=False))
+    cm = mesh_cartilage(_plate_on_bone(3.0, lean_deg), "medial_tibial_cartilage", HexOptions(fallbacks=False))
     f = cm.facts
     assert f["gate_passed"] and all(fidelity_checks(f).values()), f
     m = cm.mesh

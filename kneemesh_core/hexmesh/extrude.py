@@ -38,7 +38,7 @@ from kneemesh_core.geometry import interpolate_layers, quad_node_normals, unit
 from kneemesh_core.hexmesh.footprint import Footprint
 from kneemesh_core.hexmesh.optimize import choose_columns, choose_tops, settle
 from kneemesh_core.hexmesh.quadmesh import EIGHT_DIRECTIONS, QuadMesh, quad_edges
-from kneemesh_core.hexmesh.rays import crossings, intersector
+from kneemesh_core.hexmesh.rays import crossings, first_crossing, intersector
 from kneemesh_core.hexmesh.targets import EDGE_RATIO_AIM, MIN_SCALED_JACOBIAN
 
 
@@ -68,13 +68,25 @@ class HexMesh:
     node_piece: np.ndarray
 
 
+def _over_neighbours(values: np.ndarray, edges: np.ndarray, source: np.ndarray, target: np.ndarray,
+                     ufunc=np.add) -> tuple[np.ndarray, np.ndarray]:
+    """Per node (P, ...), ``ufunc`` (add or maximum) folded over the ``values`` (P, ...) of its
+    edge neighbours flagged ``source`` (P,) bool, for the nodes flagged ``target`` (P,) bool (zero
+    elsewhere), and how many neighbours each folded (P,)."""
+    acc = np.zeros_like(values, dtype=float)
+    count = np.zeros(len(values))
+    for a, b in ((0, 1), (1, 0)):
+        use = source[edges[:, b]] & target[edges[:, a]]
+        ufunc.at(acc, edges[use, a], values[edges[use, b]])
+        np.add.at(count, edges[use, a], 1.0)
+    return acc, count
+
+
 def _node_mean(values: np.ndarray, edges: np.ndarray, n: int) -> np.ndarray:
     """Mean of each node's neighbours' values over the edge graph."""
-    acc = np.zeros((n,) + values.shape[1:])
-    np.add.at(acc, edges[:, 0], values[edges[:, 1]])
-    np.add.at(acc, edges[:, 1], values[edges[:, 0]])
-    deg = np.bincount(edges.ravel(), minlength=n).reshape((n,) + (1,) * (values.ndim - 1))
-    return acc / np.maximum(deg, 1)
+    every = np.ones(n, bool)
+    acc, count = _over_neighbours(values, edges, every, every)
+    return acc / np.maximum(count, 1).reshape((n,) + (1,) * (values.ndim - 1))
 
 
 def _edge_ratio_guard(bone: np.ndarray, top: np.ndarray, quads: np.ndarray, layers: int) -> np.ndarray:
@@ -116,32 +128,6 @@ def _onto_contour(qm: QuadMesh, st: np.ndarray) -> np.ndarray:
 WALL_MAX_LEAN_DEG = 35.0
 
 
-def _first_hit(tm, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distance (N,) along each ray to the first surface it meets (inf where none) and whether that
-    crossing leaves the surface (N,) bool: the ray started inside."""
-    dist = np.full(len(origins), np.inf)
-    leaving = np.zeros(len(origins), bool)
-    tri, ray, loc = tm.ray.intersects_id(origins, np.ascontiguousarray(dirs), multiple_hits=False, return_locations=True)
-    if len(ray):
-        dist[ray] = np.einsum("ij,ij->i", loc - origins[ray], dirs[ray])
-        leaving[ray] = np.einsum("ij,ij->i", tm.face_normals[tri], dirs[ray]) > 0
-    return dist, leaving
-
-
-def _over_neighbours(values: np.ndarray, edges: np.ndarray, source: np.ndarray, target: np.ndarray,
-                     ufunc=np.add) -> tuple[np.ndarray, np.ndarray]:
-    """Per node (P, ...), ``ufunc`` (add or maximum) folded over the ``values`` (P, ...) of its
-    edge neighbours flagged ``source`` (P,) bool, for the nodes flagged ``target`` (P,) bool (zero
-    elsewhere), and how many neighbours each folded (P,)."""
-    acc = np.zeros_like(values, dtype=float)
-    count = np.zeros(len(values))
-    for a, b in ((0, 1), (1, 0)):
-        use = source[edges[:, b]] & target[edges[:, a]]
-        ufunc.at(acc, edges[use, a], values[edges[use, b]])
-        np.add.at(count, edges[use, a], 1.0)
-    return acc, count
-
-
 def _to_wall(tm, bone: np.ndarray, top: np.ndarray, edges: np.ndarray, contour: np.ndarray,
              reach_mm: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
     """Where the contour's columns would stand on the cartilage's wall: bone-side and articular
@@ -175,8 +161,8 @@ def _to_wall(tm, bone: np.ndarray, top: np.ndarray, edges: np.ndarray, contour: 
     fracs = np.array([0.15, 0.85])
     starts = (bone[at][None] + fracs[:, None, None] * col[None]).reshape(-1, 3)
     dirs = np.tile(out, (2, 1))
-    ahead, leaving = _first_hit(tm, starts, dirs)
-    behind, _ = _first_hit(tm, starts, -dirs)
+    ahead, leaving = first_crossing(tm, starts, dirs)
+    behind, _ = first_crossing(tm, starts, -dirs)
     # inside: the wall is the first crossing ahead; outside: the crossing behind, where the ray came in
     s = np.where(leaving, ahead, -behind).reshape(2, -1)
     s[np.abs(s) > reach_mm] = np.nan
@@ -186,7 +172,7 @@ def _to_wall(tm, bone: np.ndarray, top: np.ndarray, edges: np.ndarray, contour: 
     foot = bone[at] + (s[0] - fracs[0] * slope * length)[:, None] * out
     rise = unit(axis + slope[:, None] * out)
     cos = np.maximum(np.einsum("ij,ij->i", rise, axis), 0.5)
-    ahead, leaving = _first_hit(tm, foot - 0.1 * out + 0.1 * rise, rise)
+    ahead, leaving = first_crossing(tm, foot - 0.1 * out + 0.1 * rise, rise)
     # (never shorter than the column was, nor longer than its inner neighbours' columns reach)
     reach, _ = _over_neighbours(np.linalg.norm(top - bone, axis=1), edges, ~contour, everywhere, np.maximum)
     along = np.clip(np.where(leaving, ahead + 0.1, 0.0), length / cos, 1.25 * reach[at] / cos)

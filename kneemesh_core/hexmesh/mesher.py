@@ -266,12 +266,15 @@ def _attempt(name: str, labels: sitk.Image, tissue: str, opts: HexOptions, h: fl
     np.logical_or.at(drop, column, short)
     quad_piece = qm.piece[qm.quads[:, 0]]
     drop &= quad_piece > 0
-    for last in [False] * PIECE_CROSSING_ROUNDS + [True] if (quad_piece > 0).any() else []:
+    for round_ in range(PIECE_CROSSING_ROUNDS + 1 if (quad_piece > 0).any() else 0):
         crossing = crossing_nodes(hm.points, hm.hexes[~drop[column]]) % len(qm.points)
-        crossing = crossing[qm.piece[crossing] > 0]
+        crossing = crossing[qm.piece[crossing] > 0]  # (a piece's nodes belong to its own quads only)
         if not crossing.size:
             break
-        drop |= np.isin(quad_piece, qm.piece[crossing]) if last else (np.isin(qm.quads, crossing).any(1) & (quad_piece > 0))
+        if round_ < PIECE_CROSSING_ROUNDS:
+            drop |= np.isin(qm.quads, crossing).any(1)
+        else:
+            drop |= np.isin(quad_piece, qm.piece[crossing])
     if drop.any():
         hm = keep_columns(hm, qm.quads, ~drop)
         q = hex_quality(hm.points, hm.hexes)

@@ -67,6 +67,19 @@ def crossings(tm: trimesh.Trimesh, origins: np.ndarray, dirs: np.ndarray) -> tup
     return enter, leave
 
 
+def first_crossing(tm: trimesh.Trimesh, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance along each ray (N, 3 origins and unit directions) to the first surface it meets
+    (inf where none), and whether that crossing leaves the surface (N,) bool: the ray started inside.
+    One batched Embree call."""
+    dist = np.full(len(origins), np.inf)
+    leaving = np.zeros(len(origins), bool)
+    tri, ray, loc = tm.ray.intersects_id(origins, np.ascontiguousarray(dirs), multiple_hits=False, return_locations=True)
+    if len(ray):
+        dist[ray] = np.einsum("ij,ij->i", loc - origins[ray], dirs[ray])
+        leaving[ray] = np.einsum("ij,ij->i", tm.face_normals[tri], dirs[ray]) > 0
+    return dist, leaving
+
+
 def cast(surface: pv.PolyData, domain, st_points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Heights where the domain's rays at ``st_points`` (N, 2) enter (bone side) and then leave
     (articular surface) the closed cartilage surface; NaN where they miss."""
