@@ -1,3 +1,3 @@
-from kneemesh.cli import app
+from kneemesh.cli import entry
 
-app()
+entry()

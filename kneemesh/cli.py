@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
+import os
 import sys
+import threading
 from inspect import Parameter, signature
 from contextlib import contextmanager
 from pathlib import Path
@@ -21,6 +24,24 @@ from kneemesh_core.job import JobRequest
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Knee MRI or label maps to FE-ready knee models.")
 out = console()
 err = console(stderr=True)
+
+
+def entry() -> None:
+    """The ``kneemesh`` command: :data:`app`, then out of the process without the interpreter's
+    teardown once nothing is left running.  By then every output is written; freeing the
+    meshing libraries' modules and objects would add about 0.4 s to each knee of a cohort run
+    knee by knee (``kneemesh mesh``)."""
+    try:
+        app()
+        code = 0
+    except SystemExit as exc:  # click ends every command this way, with the exit status
+        if threading.active_count() > 1 or not isinstance(exc.code, (int, type(None))):
+            raise  # a thread still running, or a message to print: Python's own exit
+        code = exc.code or 0
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def job_option(field: str, *flags: str):
