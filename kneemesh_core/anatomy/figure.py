@@ -13,16 +13,27 @@ from kneemesh_core.anatomy.frames import Frame
 _BUNDLES = ("ACLam", "ACLpl", "PCLal", "PCLpm", "MCLs", "MCLd", "MCLp", "LCL", "PFL", "pCAP", "PT", "mPFL", "lPFL", "ITB")
 
 
-def draw(document: dict, bones: dict, frames: dict[str, Frame], path: Path, title: str = "") -> None:
-    """Write the figure; ``bones``: pyvista meshes per bone (LPS mm).
-
-    Drawn on a bare Agg figure (no pyplot: its import alone took a second of the job's critical
-    path), with one artist per bundle rather than one per fibre."""
+def _matplotlib():
+    """The parts of matplotlib the figure is drawn with, imported on first use (0.4 s)."""
     from matplotlib import colormaps
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import LineCollection
     from matplotlib.figure import Figure
 
+    return colormaps, FigureCanvasAgg, LineCollection, Figure
+
+
+def load() -> None:
+    """Import matplotlib now rather than in the first :func:`draw`."""
+    _matplotlib()
+
+
+def draw(document: dict, bones: dict, frames: dict[str, Frame], path: Path, title: str = "") -> None:
+    """Write the figure; ``bones``: pyvista meshes per bone (LPS mm).
+
+    Drawn on a bare Agg figure (no pyplot: its import alone took a second of the job's critical
+    path), with one artist per bundle rather than one per fibre."""
+    colormaps, FigureCanvasAgg, LineCollection, Figure = _matplotlib()
     ref = frames["tibia"]
     side = document.get("side", "")
     # columns: lateral, anterior, proximal; seen from the front, a left knee's lateral side is on the left

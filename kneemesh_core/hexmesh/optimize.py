@@ -42,6 +42,15 @@ def column_score(cols: np.ndarray, layers: int = 1) -> np.ndarray:
     return _column_quads(_by_slot(cols), layers)
 
 
+def load_kernels() -> None:
+    """Load the compiled kernels now (from numba's cache; compiled and cached on a first run)
+    rather than in the first column the optimiser scores: 0.3 s that a new worker can spend while
+    it waits for its first step."""
+    cube = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+    layer_quality(cube[None])
+    column_score(cube[None])
+
+
 #: Edge ratios up to ER_FREE cost nothing; ER_AT_HALF scores the gate's Jacobian, as low as it lets
 #: the Jacobian go.
 ER_FREE, ER_AT_HALF = 4.5, EDGE_RATIO_AIM

@@ -12,6 +12,7 @@ from typing import Callable
 from kneemesh_core.job.options import JobOptions
 from kneemesh_core.job.outputs import REPORT_FILE, STEPS_DIR, read_json
 from kneemesh_core.job.plan import INGEST, SEGMENT, needs, plan, run_step, start_order
+from kneemesh_core.job.steps import warm_up
 
 #: Called with (step, state) as each step starts ("running") and ends (a tissue's status, or "done").
 Progress = Callable[[str, str], None]
@@ -40,7 +41,8 @@ def run(
 
     Each step starts as soon as the steps it waits for (:func:`.plan.needs`) are done and one of
     ``workers`` is free, the cartilages' meshes first (:func:`.plan.start_order`): on ``pool`` (or a
-    new pool of ``workers`` processes; one worker runs them here).  ``fresh`` forgets the step records of an
+    new pool of ``workers`` processes, started at once to warm up (:func:`.steps.warm_up`) while
+    the input is read; one worker runs them here).  ``fresh`` forgets the step records of an
     earlier run into ``out_dir``; without it, steps already done are skipped
     (the embedded service resumes jobs whose ingest the API has done).
     ``cancelled`` is asked before each step starts; it raises :class:`JobCancelled`.
@@ -54,7 +56,8 @@ def run(
     order = start_order(stages)
     own_pool = pool is None and workers > 1
     if own_pool:
-        pool = ProcessPoolExecutor(max_workers=workers)
+        pool = ProcessPoolExecutor(max_workers=workers, initializer=warm_up)
+        pool.submit(int)  # the workers start now and warm up while this process reads the input
     done: set[str] = set()
     running: dict[Future, str] = {}
     try:

@@ -38,6 +38,17 @@ def hex_step(cartilage: str) -> str:
     return f"hex_{cartilage}"
 
 
+def warm_up() -> None:
+    """Load what the steps would load on first use: the column optimiser's compiled kernels and
+    the attachments figure's matplotlib (together about 0.7 s of the first steps a worker runs).
+    A job's own pool of workers does it while the job's input is read (:func:`.local.run`)."""
+    from kneemesh_core.anatomy import figure
+    from kneemesh_core.hexmesh import optimize
+
+    optimize.load_kernels()
+    figure.load()
+
+
 def ingest(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: JobOptions) -> dict:
     """Validate the input and write canonical labels and ``job.json``.
 
