@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,8 +43,14 @@ class Footprint:
 
     def gradient(self, st: np.ndarray) -> np.ndarray:
         """(N, 2) gradient of the signed distance at parameter points."""
-        g = np.gradient(self.sdf, self.grid.step)
-        return np.stack([self.sample(g[0], st), self.sample(g[1], st)], -1)
+        gs, gt = self._sdf_gradient
+        return np.stack([self.sample(gs, st), self.sample(gt, st)], -1)
+
+    @functools.cached_property
+    def _sdf_gradient(self) -> tuple[np.ndarray, np.ndarray]:
+        """The signed distance's gradient on the grid, computed once: the extrusion's untangling
+        samples it for every candidate slide of the contour nodes (over a hundred times)."""
+        return tuple(np.gradient(self.sdf, self.grid.step))
 
     def holes(self) -> int:
         """Holes in the footprint (full-thickness defects the mesh keeps open)."""
