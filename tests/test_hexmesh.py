@@ -266,15 +266,16 @@ def test_thin_cartilage_goes_through_the_whole_chain_in_fewer_layers():
     assert not f["fidelity_passed"] and f["coverage"] > 0.9
 
 
-def _plate_on_bone(thickness_mm: float, lean_deg: float = 0.0) -> sitk.Image:
-    """A flat medial tibial cartilage disc (radius 9 mm at the bone, ``thickness_mm`` thick) on a block
-    of tibia, its wall leaning ``lean_deg`` inwards from the bone normal (less radius at the joint: a
-    lesion's or a cut plate's edge), 0.25 mm voxels."""
+def _plate_on_bone(thickness_mm: float, lean_deg: float = 0.0, thin_half_mm: float | None = None) -> sitk.Image:
+    """A flat medial tibial cartilage disc (radius 9 mm at the bone, ``thickness_mm`` thick, or
+    ``thin_half_mm`` on one half) on a block of tibia, its wall leaning ``lean_deg`` inwards from the
+    bone normal (less radius at the joint: a lesion's or a cut plate's edge), 0.25 mm voxels."""
     sp = 0.25
     z, y, x = np.mgrid[0:48, 0:100, 0:100] * sp
     labels = np.where(z < 6, LABEL["tibia"], 0).astype(np.uint8)
     radius = 9.0 - (z - 6.0) * np.tan(np.deg2rad(lean_deg))
-    labels[(z >= 6) & (z < 6 + thickness_mm) & (np.hypot(x - 12.5, y - 12.5) < radius)] = LABEL["medial_tibial_cartilage"]
+    thickness = np.where(x < 12.5, thickness_mm if thin_half_mm is None else thin_half_mm, thickness_mm)
+    labels[(z >= 6) & (z < 6 + thickness) & (np.hypot(x - 12.5, y - 12.5) < radius)] = LABEL["medial_tibial_cartilage"]
     image = sitk.GetImageFromArray(labels)
     image.SetSpacing((sp, sp, sp))
     return image
@@ -296,6 +297,24 @@ def test_rim_columns_lean_with_a_leaning_wall(lean_deg):
     foot = np.median(radius[m.node_edge & (m.node_layer == 0)])
     head = np.median(radius[m.node_edge & (m.node_layer == m.node_layer.max())])
     assert foot > 8.6 and head < foot - 0.35 * 3.0 * np.tan(np.deg2rad(lean_deg)), (foot, head)
+
+
+def test_cartilage_thinner_than_the_columns_floor_tries_smaller_elements_first():
+    """A plate half 0.5 mm and half 1 mm thick: four layers of 1 mm elements keep every column at least
+    0.69 mm tall (the edge ratio), 13 % more volume than the label, which no fallback at that element size
+    changes (the chain ran seven of them before smaller elements, whose floor is 0.52 mm).  The floor's
+    excess is measured on the default attempt's footprint, and smaller elements come next."""
+    from kneemesh_core.hexmesh.mesher import MAX_FLOOR_EXCESS, _quads, _rays, floor_excess
+
+    labels = _plate_on_bone(1.0, thin_half_mm=0.5)
+    opts, cache = HexOptions(), {}
+    _, _, domain, hf = _rays(labels, "medial_tibial_cartilage", opts, 1.0, cache)
+    fp, _ = _quads(hf, domain, opts, 1.0, cache)
+    assert floor_excess(fp, 4, 1.0) > 0.1 and floor_excess(fp, 4, 0.75) < MAX_FLOOR_EXCESS
+    assert floor_excess(fp, 2, 1.0) < 0.001  # the floor of two 1 mm layers (0.34 mm) only at the rim
+    f = mesh_cartilage(labels, "medial_tibial_cartilage").facts
+    assert f["attempts"] == ["default", "smaller_elements"] and f["n_layers"] == 4, f["attempts"]
+    assert f["gate_passed"] and f["fidelity_passed"] and f["element_size_mm"] < 0.8
 
 
 def test_a_cartilage_too_thin_for_its_layers_is_meshed_in_fewer_and_says_so():
