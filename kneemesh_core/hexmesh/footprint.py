@@ -52,6 +52,10 @@ class Footprint:
         samples it for every candidate slide of the contour nodes (over a hundred times)."""
         return tuple(np.gradient(self.sdf, self.grid.step))
 
+    def thickness(self) -> np.ndarray:
+        """(N,) cartilage thickness, mm, along the rays inside the footprint."""
+        return (self.joint - self.bone)[self.inside]
+
     def holes(self) -> int:
         """Holes in the footprint (full-thickness defects the mesh keeps open)."""
         return len(enclosed_holes(self.inside)[1])

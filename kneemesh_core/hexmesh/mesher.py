@@ -483,14 +483,14 @@ def _blend_checked(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOptio
 
 def median_thickness(fp: Footprint) -> float:
     """Median cartilage thickness (mm) along the rays inside a footprint."""
-    return float(np.median((fp.joint - fp.bone)[fp.inside]))
+    return float(np.median(fp.thickness()))
 
 
 def floor_excess(fp: Footprint, layers: int, h: float) -> float:
     """The volume that the columns' floor (``layers`` x ``h`` / :data:`.targets.EDGE_RATIO_AIM`, mm) adds
     where the cartilage is thinner than it, as a fraction of the cartilage's volume, along the rays inside
     a footprint."""
-    t = (fp.joint - fp.bone)[fp.inside]
+    t = fp.thickness()
     return float(np.clip(layers * h / EDGE_RATIO_AIM - t, 0.0, None).sum() / max(t.sum(), 1e-9))
 
 
