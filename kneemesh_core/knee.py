@@ -138,34 +138,49 @@ def canonicalise(
     if convention is None:
         convention = detect_convention(counts, voxel_volume_ml(image))
     check_convention(convention, counts, vol.source)
+    canon = _canonical_values(arr, convention, vol.source)
+    evidence = _side_evidence(image, arr, canon, convention)
+    decision = side_mod.decide(explicit=side, dicom_meta=vol.meta, filename=Path(vol.source).name,
+                               **{k: v for k, v in evidence.items() if k not in ("merged", "coarse")})
+    if evidence["merged"] is not None and evidence["merged"].any():
+        _label_plates(canon, evidence["merged"], evidence["plates"], decision.side, evidence["axes"])
+    out = sitk.GetImageFromArray(canon)
+    out.CopyInformation(image)
+    return Knee(labels=out, convention=convention, side=decision.side, side_method=decision.method,
+                side_evidence=decision.evidence, source=vol.source, meta=vol.meta)
 
+
+def _canonical_values(arr: np.ndarray, convention: LabelConvention, source: str) -> np.ndarray:
+    """The label array (z, y, x) in canonical values, a merged tibial cartilage left at 0 (its plates are
+    told apart once the side is known)."""
     lut = np.zeros(256, dtype=np.uint8)
     for tissue, vals in convention.tissues.items():
         if tissue != MERGED_TIBIAL:
             lut[list(vals)] = LABEL[tissue]
     canon = lut[arr]
     if not canon.any() and not convention.merged_tibial:
-        raise KneeMeshError("empty_labels", f"{Path(vol.source).name}: no tissue of the {convention.name!r} convention.")
+        raise KneeMeshError("empty_labels", f"{Path(source).name}: no tissue of the {convention.name!r} convention.")
+    return canon
 
+
+def _side_evidence(image: sitk.Image, arr: np.ndarray, canon: np.ndarray, convention: LabelConvention) -> dict:
+    """What the labels tell of the knee's side (:func:`kneemesh_core.side.decide`'s keywords: its axes from
+    where its bones lie, for a label map need not be in a scanner's frame; the plates' centroids where they
+    are labelled apart; the fibula; the knee's position; a merged tibial cartilage split into two plates;
+    the bones' shape), with the merged cartilage's mask and the coarse axes."""
     centre = _centroids(image, canon)  # by canonical label; 0: the whole knee
     knee_x = float(centre[0][0]) if 0 in centre else None
-    # the knee's own axes from where its bones lie (a label map need not be in a scanner's frame)
     femur, tibia, patella = (centre.get(LABEL[b]) for b in ("femur", "tibia", "patella"))
-    coarse = None
-    axes = None
+    coarse = axes = None
     if femur is not None and tibia is not None:
         coarse = coarse_axes(femur[None], tibia[None], patella[None] if patella is not None else None)
         axes = side_mod.KneeAxes(coarse.centre, coarse.right)
-    labelled_ml = None
     mtc, ltc = (centre.get(LABEL[t]) for t in ("medial_tibial_cartilage", "lateral_tibial_cartilage"))
-    if mtc is not None and ltc is not None:
-        labelled_ml = (mtc, ltc)
+    labelled_ml = (mtc, ltc) if mtc is not None and ltc is not None else None
     fib_vals = convention.value_of("fibula")
     fibula = np.isin(arr, fib_vals) if fib_vals else None
     fibula_c = _centroids(image, fibula.view(np.uint8)).get(1) if fibula is not None else None
-
-    plates = None
-    merged = None
+    plates = merged = None
     if convention.merged_tibial:
         merged = np.isin(arr, convention.tissues[MERGED_TIBIAL])
         if merged.sum() >= 40:
@@ -175,39 +190,19 @@ def canonicalise(
             plates = side_mod.split_plates(pts, comp[merged[box]])
             if knee_x is None:
                 knee_x = float(pts[:, 0].mean())
+    return {"axes": axes, "labelled_ml": labelled_ml, "fibula": fibula_c, "knee_x": knee_x, "plates": plates,
+            "shape": (lambda: _shape_side(image, canon, coarse)) if coarse is not None else None,
+            "merged": merged, "coarse": coarse}
 
-    decision = side_mod.decide(
-        explicit=side,
-        dicom_meta=vol.meta,
-        filename=Path(vol.source).name,
-        axes=axes,
-        labelled_ml=labelled_ml,
-        fibula=fibula_c,
-        knee_x=knee_x,
-        plates=plates,
-        shape=(lambda: _shape_side(image, canon, coarse)) if coarse is not None else None,
-    )
-    if merged is not None and merged.any():
-        if plates is None:  # too few voxels to split: they all go to the +x plate
-            plus = np.ones(int(merged.sum()), dtype=bool)
-        else:
-            plus = plates.plus_x
-        right = axes.right if axes is not None else np.array([-1.0, 0.0, 0.0])
-        medial_is_plus = side_mod.medial_direction(decision.side, right)[0] > 0
-        values = np.where(plus == medial_is_plus, LABEL["medial_tibial_cartilage"], LABEL["lateral_tibial_cartilage"])
-        canon[merged] = values.astype(np.uint8)
 
-    out = sitk.GetImageFromArray(canon)
-    out.CopyInformation(image)
-    return Knee(
-        labels=out,
-        convention=convention,
-        side=decision.side,
-        side_method=decision.method,
-        side_evidence=decision.evidence,
-        source=vol.source,
-        meta=vol.meta,
-    )
+def _label_plates(canon: np.ndarray, merged: np.ndarray, plates, side: str, axes) -> None:
+    """A merged tibial cartilage's voxels (``merged``, (z, y, x) bool) labelled medial or lateral in
+    ``canon``, by the plate each went to and the knee's side."""
+    plus = np.ones(int(merged.sum()), dtype=bool) if plates is None else plates.plus_x  # too few to split: +x
+    right = axes.right if axes is not None else np.array([-1.0, 0.0, 0.0])
+    medial_is_plus = side_mod.medial_direction(side, right)[0] > 0
+    values = np.where(plus == medial_is_plus, LABEL["medial_tibial_cartilage"], LABEL["lateral_tibial_cartilage"])
+    canon[merged] = values.astype(np.uint8)
 
 
 def load_knee(

@@ -197,6 +197,13 @@ def decide(
         return SideDecision(side_from_medial_lateral(*labelled_ml, axes.right), "labels_medial_lateral",
                             {"medial_mm": _round(labelled_ml[0]), "lateral_mm": _round(labelled_ml[1]),
                              "patient_right": _round(axes.right, 4)})
+    strong, weak, evidence = _anatomical_evidence(axes, fibula, shape, plates, knee_x)
+    return _weigh(strong, weak, evidence)
+
+
+def _anatomical_evidence(axes: KneeAxes, fibula, shape, plates, knee_x) -> tuple[dict, dict, dict]:
+    """The anatomy's votes: strong (the fibula's side, the bones' shape) and weak (the longer plate is
+    medial, the scanner position), each {evidence: side}, and what each saw."""
     evidence: dict = {}
     strong: dict[str, str] = {}
     weak: dict[str, str] = {}
@@ -220,12 +227,20 @@ def decide(
         evidence["knee_x_mm"] = round(knee_x, 2)
         if abs(knee_x) >= _POSITION_MIN_MM:
             weak["scanner_position"] = "right" if knee_x < 0 else "left"
+    return strong, weak, evidence
+
+
+def _conflict(votes: dict[str, str]) -> KneeMeshError:
+    return KneeMeshError("side_conflict", "the evidence for left/right disagrees ("
+                         + ", ".join(f"{k} says {v}" for k, v in votes.items()) + "); pass --side left or --side right.")
+
+
+def _weigh(strong: dict[str, str], weak: dict[str, str], evidence: dict) -> SideDecision:
+    """The side the votes give: strong evidence decides (and must agree; weak evidence against it is
+    ``overruled``), else the weak evidence, which must agree; none at all is an error asking for ``--side``."""
     if strong:
         if len(set(strong.values())) > 1:
-            raise KneeMeshError(
-                "side_conflict",
-                "the evidence for left/right disagrees (" + ", ".join(f"{k} says {v}" for k, v in strong.items())
-                + "); pass --side left or --side right.")
+            raise _conflict(strong)
         side = next(iter(strong.values()))
         overruled = {k: v for k, v in weak.items() if v != side}
         if overruled:
@@ -233,23 +248,16 @@ def decide(
         votes = {**strong, **{k: v for k, v in weak.items() if v == side}}
         evidence["votes"] = votes
         return SideDecision(side, "+".join(votes), evidence)
-    votes = weak
-    if not votes:
+    if not weak:
         raise KneeMeshError(
             "side_unknown",
             "cannot tell a left from a right knee here (no DICOM laterality, no left/right in the file name, "
             "no medial/lateral labels, unclear anatomy); pass --side left or --side right.",
         )
-    sides = set(votes.values())
-    if len(sides) > 1:
-        raise KneeMeshError(
-            "side_conflict",
-            "the evidence for left/right disagrees ("
-            + ", ".join(f"{k} says {v}" for k, v in votes.items())
-            + "); pass --side left or --side right.",
-        )
-    evidence["votes"] = votes
-    return SideDecision(sides.pop(), "+".join(votes), evidence)
+    if len(set(weak.values())) > 1:
+        raise _conflict(weak)
+    evidence["votes"] = weak
+    return SideDecision(next(iter(weak.values())), "+".join(weak), evidence)
 
 
 def _round(v, n: int = 2) -> list[float]:

@@ -67,66 +67,16 @@ def place(bones: dict[str, pv.PolyData], side: str, plates: tuple[np.ndarray, np
     if "femur" not in pts or "tibia" not in pts:
         return Anatomy({}, {"status": "failed", "reason": "the femur and the tibia are both needed for the knee's frames",
                             "code": "bone_missing"}, {}, bones)
-    axes = coarse_axes(pts["femur"], pts["tibia"], pts.get("patella"))
     mirrored = side == "left"
-    regs: dict[str, Registration] = {b: register(b, template.points(b), pts[b], axes, mirrored) for b in pts}
-    frames = {"femur": femur_frame(pts["femur"], axes, side), "tibia": tibia_frame(pts["tibia"], axes, side, plates)}
-    if "patella" in pts:
-        frames["patella"] = patella_frame(pts["patella"], axes, side, frames["femur"])
-    # the shape check: the mirror image of the template fitted to the same bones
-    fit = sum(regs[b].rms_similarity_mm for b in ("tibia", "femur"))
-    mirror = sum(register(b, template.points(b), pts[b], axes, not mirrored, refine=False).rms_mm
-                 for b in ("tibia", "femur"))
-    shape = shape_verdict(*((mirror, fit) if mirrored else (fit, mirror)))
-
+    regs, frames, shape = _register(template, pts, side, plates)
     trees = {b: cKDTree(p) for b, p in pts.items()}
-    fibres, unplaced = [], []
     femur_scale = regs["femur"].similarity.scale if "femur" in regs else 1.0  # hip to knee scales with the femur
-    for fibre in template.fibres:
-        ends = []
-        for end in fibre.ends:
-            if end.bone not in regs:
-                unplaced.append({"fibre": fibre.name, "bone": end.bone, "reason": unplaced_bones[end.bone]})
-                ends.append({"bone": end.bone, "node": None, "lps_mm": None})
-                continue
-            mapped = regs[end.bone].place(end.point[None])[0]
-            entry = {"bone": end.bone}
-            if end.surface == "fibula":
-                entry.update(node=None, lps_mm=_round(mapped), on="fibula (template, moved with the tibia)")
-            else:
-                _, closest = bones[end.bone].find_closest_cell(mapped[None], return_closest_point=True)
-                entry.update(node=int(trees[end.bone].query(closest[0])[1]), lps_mm=_round(closest[0]),
-                             snapped_mm=round(float(np.linalg.norm(closest[0] - mapped)), 3))
-            ends.append(entry)
-        strain = fibre.reference_strain
-        beyond = fibre.path_beyond_mm * femur_scale
-        item = {"name": fibre.name, "bundle": fibre.bundle, "stiffness_n": fibre.stiffness_n,
-                "template_slack_length_mm": fibre.slack_length_mm, "reference_strain": round(strain, 4), "ends": ends}
-        if all(e["lps_mm"] is not None for e in ends):
-            length = float(np.linalg.norm(np.subtract(ends[0]["lps_mm"], ends[1]["lps_mm"]))) + beyond
-            item.update(length_mm=round(length, 3), slack_length_mm=round(length / (1.0 + strain), 3))
-        else:
-            scales = [regs[e.bone].similarity.scale for e in fibre.ends if e.bone in regs]
-            item["slack_length_mm"] = round(fibre.slack_length_mm * float(np.mean(scales or [1.0])), 3)
-        if beyond:
-            item["path_beyond_mm"] = round(beyond, 3)
-        if fibre.note:
-            item["note"] = fibre.note
-        fibres.append(item)
-
+    unplaced: list[dict] = []
+    fibres = [_fibre(fibre, regs, bones, trees, femur_scale, unplaced_bones, unplaced) for fibre in template.fibres]
     residuals = {b: round(r.rms_mm, 3) for b, r in regs.items()}
-    implausible = {b: r for b, r in residuals.items() if r > MAX_PLAUSIBLE_RMS_MM[b]}
-    reasons = [f"{b} registration residual {r} mm is implausible (> {MAX_PLAUSIBLE_RMS_MM[b]} mm): "
-               "its sites are unreliable" for b, r in implausible.items()]
-    for bone, why in unplaced_bones.items():
-        n = sum(u["bone"] == bone for u in unplaced)
-        reasons.append(f"{n} sites on the {bone} not placed: {why}")
-    if shape.get("side") and shape["side"] != side:
-        reasons.append(f"the bones' shape fits a {shape['side']} knee better (residuals right {shape['rms_right_mm']} mm, "
-                       f"left {shape['rms_left_mm']} mm) than the {side} knee this job was given")
     angles = grood_suntay(frames["femur"], frames["tibia"])
     violations = rule_violations(fibres, frames)
-    reasons += [f"site off its anatomy: {v}" for v in violations]
+    reasons = _reasons(residuals, unplaced_bones, unplaced, shape, side, violations)
     document = {
         "template": {**template.source, "mirrored_for_left_knee": mirrored},
         "side": side,
@@ -144,6 +94,74 @@ def place(bones: dict[str, pv.PolyData], side: str, plates: tuple[np.ndarray, np
               "sites_placed": sum(e["lps_mm"] is not None for f in fibres for e in f["ends"]),
               "unplaced": unplaced, "shape_side": shape, "seconds": round(time.perf_counter() - t0, 3)}
     return Anatomy(document, report, frames, bones)
+
+
+def _register(template, pts: dict[str, np.ndarray], side: str, plates) -> tuple[dict, dict, dict]:
+    """The template registered to each bone (points (N, 3), LPS mm), the knee's frames, and the shape
+    check: the mirror image of the template fitted to the same bones, so a proper rotation that cannot
+    turn a left bone into a right one tells the side."""
+    axes = coarse_axes(pts["femur"], pts["tibia"], pts.get("patella"))
+    mirrored = side == "left"
+    regs: dict[str, Registration] = {b: register(b, template.points(b), pts[b], axes, mirrored) for b in pts}
+    frames = {"femur": femur_frame(pts["femur"], axes, side), "tibia": tibia_frame(pts["tibia"], axes, side, plates)}
+    if "patella" in pts:
+        frames["patella"] = patella_frame(pts["patella"], axes, side, frames["femur"])
+    fit = sum(regs[b].rms_similarity_mm for b in ("tibia", "femur"))
+    mirror = sum(register(b, template.points(b), pts[b], axes, not mirrored, refine=False).rms_mm
+                 for b in ("tibia", "femur"))
+    return regs, frames, shape_verdict(*((mirror, fit) if mirrored else (fit, mirror)))
+
+
+def _fibre(fibre, regs: dict, bones: dict[str, pv.PolyData], trees: dict, femur_scale: float,
+           unplaced_bones: dict[str, str], unplaced: list[dict]) -> dict:
+    """One fibre of the template on the subject's bones: each end mapped by its bone's registration and
+    put on the bone's surface (the fibular ends move with the tibia), its slack length giving the
+    subject's fibre the template's reference strain; an end on a missing bone is listed in ``unplaced``."""
+    ends = []
+    for end in fibre.ends:
+        if end.bone not in regs:
+            unplaced.append({"fibre": fibre.name, "bone": end.bone, "reason": unplaced_bones[end.bone]})
+            ends.append({"bone": end.bone, "node": None, "lps_mm": None})
+            continue
+        mapped = regs[end.bone].place(end.point[None])[0]
+        entry = {"bone": end.bone}
+        if end.surface == "fibula":
+            entry.update(node=None, lps_mm=_round(mapped), on="fibula (template, moved with the tibia)")
+        else:
+            _, closest = bones[end.bone].find_closest_cell(mapped[None], return_closest_point=True)
+            entry.update(node=int(trees[end.bone].query(closest[0])[1]), lps_mm=_round(closest[0]),
+                         snapped_mm=round(float(np.linalg.norm(closest[0] - mapped)), 3))
+        ends.append(entry)
+    strain = fibre.reference_strain
+    beyond = fibre.path_beyond_mm * femur_scale
+    item = {"name": fibre.name, "bundle": fibre.bundle, "stiffness_n": fibre.stiffness_n,
+            "template_slack_length_mm": fibre.slack_length_mm, "reference_strain": round(strain, 4), "ends": ends}
+    if all(e["lps_mm"] is not None for e in ends):
+        length = float(np.linalg.norm(np.subtract(ends[0]["lps_mm"], ends[1]["lps_mm"]))) + beyond
+        item.update(length_mm=round(length, 3), slack_length_mm=round(length / (1.0 + strain), 3))
+    else:
+        scales = [regs[e.bone].similarity.scale for e in fibre.ends if e.bone in regs]
+        item["slack_length_mm"] = round(fibre.slack_length_mm * float(np.mean(scales or [1.0])), 3)
+    if beyond:
+        item["path_beyond_mm"] = round(beyond, 3)
+    if fibre.note:
+        item["note"] = fibre.note
+    return item
+
+
+def _reasons(residuals: dict[str, float], unplaced_bones: dict[str, str], unplaced: list[dict], shape: dict, side: str,
+             violations: list[str]) -> list[str]:
+    """Why the anatomy is ``review``: implausible residuals, sites not placed, a shape that fits the other
+    side better, sites off their anatomy."""
+    reasons = [f"{b} registration residual {r} mm is implausible (> {MAX_PLAUSIBLE_RMS_MM[b]} mm): "
+               "its sites are unreliable" for b, r in residuals.items() if r > MAX_PLAUSIBLE_RMS_MM[b]]
+    for bone, why in unplaced_bones.items():
+        n = sum(u["bone"] == bone for u in unplaced)
+        reasons.append(f"{n} sites on the {bone} not placed: {why}")
+    if shape.get("side") and shape["side"] != side:
+        reasons.append(f"the bones' shape fits a {shape['side']} knee better (residuals right {shape['rms_right_mm']} mm, "
+                       f"left {shape['rms_left_mm']} mm) than the {side} knee this job was given")
+    return reasons + [f"site off its anatomy: {v}" for v in violations]
 
 
 def _round(p: np.ndarray) -> list[float]:

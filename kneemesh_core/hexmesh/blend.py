@@ -396,110 +396,135 @@ def _carry_out(hm: HexMesh, b, a, target, move, offer, group, floor):
     return move, a, offer
 
 
-def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptions()) -> tuple[HexMesh, dict]:
-    """Fuse (when a bone surface is given) and blend; returns the new mesh and the ``blend`` report."""
-    P, L = _columns(hm)
-    facts: dict = {"applied": False, "angle_target_deg": opts.angle_deg}
-    fused = np.zeros(P, bool)
-    if bone is not None:
-        bone = _Bone(bone)
-        hm, fused = fuse(hm, bone, opts)
-    quads = _layer0_quads(hm)
-    e = quad_edges(quads)
-    ring = node_rings(quads, hm.node_edge[:P])
-    b, a = hm.points[:P].copy(), hm.points[L * P:].copy()
-    column = a - b
-    normal = _bone_normals(b, quads, column)
-    out = _outward(b, normal, ring, e, opts.rings)
-    height = (column * normal).sum(1)  # thickness along the bone normal
-    # how far the bone side reaches out: the run of a slope at the angle over the edge thickness
-    run = height / np.tan(np.radians(opts.angle_deg))
-    edge_ids = np.flatnonzero(ring == 0)
-    run[edge_ids] = np.minimum(run[edge_ids], 0.4 * _clearance(b, edge_ids, e))
-    run = _propagate(run, ring, e, opts.rings)
-    weight = np.clip(1.0 - ring / opts.rings, 0.0, 1.0)
-    disp = run * weight
-    floor = _floors(hm.ring, opts.edge_floor)
-    n_foot = bone.normal(b) if bone is not None else normal
-    tan = np.tan(np.radians(opts.angle_deg))
-    zone = (ring < opts.rings) & (disp > 0)
-    moving = zone[hm.hexes % P].any(1)  # only these elements can change
-    cols = np.flatnonzero(zone)
-    # the back-off loop changes a few columns a round: bone queries are made again only for those
-    if bone is not None:
-        slide_on, normal_at, signed_at = _RowMemo(bone.slide), _RowMemo(bone.normal), _RowMemo(bone.signed)
+class _EdgeBlend:
+    """The blend of one fused mesh: each column's bone-side and articular nodes, the outward direction
+    along the bone and the displacement of the columns within ``rings`` of the edge (``disp``, mm), and how
+    a share ``scale`` (P,) of it places them (:meth:`place`) or offends (:meth:`offending`)."""
 
-    def place(scale: np.ndarray) -> np.ndarray:
-        d = (disp * scale)[:, None] * out
-        new_b = b + opts.bone_share * d
-        new_col = column.copy()
-        slide = fused & zone  # fused feet slide along the bone, the others along their tangent plane
+    def __init__(self, hm: HexMesh, bone: "_Bone | None", fused: np.ndarray, opts: BlendOptions):
+        self.hm, self.bone, self.fused, self.opts = hm, bone, fused, opts
+        self.P, self.L = _columns(hm)
+        P = self.P
+        self.quads = _layer0_quads(hm)
+        self.e = e = quad_edges(self.quads)
+        self.ring = ring = node_rings(self.quads, hm.node_edge[:P])
+        self.b, a = hm.points[:P].copy(), hm.points[self.L * P:].copy()
+        self.column = a - self.b
+        normal = _bone_normals(self.b, self.quads, self.column)
+        self.normal = normal
+        self.out = _outward(self.b, normal, ring, e, opts.rings)
+        self.height = (self.column * normal).sum(1)  # thickness along the bone normal
+        # how far the bone side reaches out: the run of a slope at the angle over the edge thickness
+        run = self.height / np.tan(np.radians(opts.angle_deg))
+        self.edge_ids = np.flatnonzero(ring == 0)
+        run[self.edge_ids] = np.minimum(run[self.edge_ids], 0.4 * _clearance(self.b, self.edge_ids, e))
+        run = _propagate(run, ring, e, opts.rings)
+        self.disp = run * np.clip(1.0 - ring / opts.rings, 0.0, 1.0)
+        self.floor = _floors(hm.ring, opts.edge_floor)
+        self.n_foot = bone.normal(self.b) if bone is not None else normal
+        self.zone = (ring < opts.rings) & (self.disp > 0)
+        self.moving = self.zone[hm.hexes % P].any(1)  # only these elements can change
+        self.cols = np.flatnonzero(self.zone)
+        # the back-off loop changes a few columns a round: bone queries are made again only for those
+        if bone is not None:
+            self.slide_on, self.normal_at, self.signed_at = _RowMemo(bone.slide), _RowMemo(bone.normal), _RowMemo(bone.signed)
+
+    def place(self, scale: np.ndarray) -> np.ndarray:
+        """Every node (P * (L + 1), 3) with ``scale`` (P,) of each column's displacement applied."""
+        opts, zone = self.opts, self.zone
+        d = (self.disp * scale)[:, None] * self.out
+        new_b = self.b + opts.bone_share * d
+        new_col = self.column.copy()
+        slide = self.fused & zone  # fused feet slide along the bone, the others along their tangent plane
         if slide.any():
-            new_b[slide] = slide_on(b[slide], opts.bone_share * d[slide])
-        n_new = normal_at(new_b) if bone is not None else normal
+            new_b[slide] = self.slide_on(self.b[slide], opts.bone_share * d[slide])
+        n_new = self.normal_at(new_b) if self.bone is not None else self.normal
         if slide.any():  # the column rolls with the bone as its foot slides over it
-            new_col[slide] = _rotate(column[slide], n_foot[slide], n_new[slide])
+            new_col[slide] = _rotate(self.column[slide], self.n_foot[slide], n_new[slide])
         # the articular surface comes down to the bone at the angle: thickness capped by the distance to the edge
-        s = cKDTree(new_b[edge_ids]).query(new_b)[0]
-        cap = height * opts.edge_height + s * tan
+        s = cKDTree(new_b[self.edge_ids]).query(new_b)[0]
+        height = self.height
+        cap = height * opts.edge_height + s * np.tan(np.radians(opts.angle_deg))
         shrink = np.where(zone, np.minimum(1.0, (1 - scale) + scale * cap / np.maximum(height, 1e-9)), 1.0)
         new_col *= shrink[:, None]
         # lean the tapered columns outwards by half the local slope: the corners of an element under
         # a sloping top then split the slope between its bottom and its top (67.5/112.5 deg, not 45/135)
         slope = np.radians(opts.angle_deg) * np.clip((height - cap) / np.maximum(height * (1 - opts.edge_height), 1e-9), 0, 1)
         lean = np.where(zone, scale * np.tan(slope / 2), 0.0) * np.linalg.norm(new_col, axis=1)
-        new_col += lean[:, None] * _tangent(out, n_new)
-        return interpolate_layers(new_b, new_b + new_col, L)
+        new_col += lean[:, None] * _tangent(self.out, n_new)
+        return interpolate_layers(new_b, new_b + new_col, self.L)
 
-    def offending(pts: np.ndarray, scale: np.ndarray) -> np.ndarray:
-        bad = _bad_columns(quads, pts[:P], pts[L * P:], floor, moving)
-        if bone is not None:  # no node of a blended column may end up inside the bone
-            above = pts.reshape(L + 1, P, 3)[1:, cols].reshape(-1, 3)
-            inside = (signed_at(above) < -FUSED_TOL_MM).reshape(L, -1).any(0)
-            bad[cols[inside]] = True
+    def offending(self, pts: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """The columns (P,) whose elements fall below their floor, whose nodes enter the bone, or, once every
+        element is fine, whose boundary crosses itself (edges facing across a narrow gap, or a piece on a finer
+        lattice beside the edge, reaching for the same bone)."""
+        P, L, zone = self.P, self.L, self.zone
+        bad = _bad_columns(self.quads, pts[:P], pts[L * P:], self.floor, self.moving)
+        if self.bone is not None:  # no node of a blended column may end up inside the bone
+            above = pts.reshape(L + 1, P, 3)[1:, self.cols].reshape(-1, 3)
+            inside = (self.signed_at(above) < -FUSED_TOL_MM).reshape(L, -1).any(0)
+            bad[self.cols[inside]] = True
         bad &= (scale > 0) & zone
-        if not bad.any():  # elements all fine: the boundary may still fold over itself (edges facing
-            # across a narrow gap, or a piece on a finer lattice beside the edge, reaching for the same bone)
-            bad[crossing_nodes(pts, hm.hexes) % P] = True
+        if not bad.any():
+            bad[crossing_nodes(pts, self.hm.hexes) % P] = True
             bad &= (scale > 0) & zone
         return bad
 
-    scale = np.ones(P)
-    tries = np.zeros(P, int)
-    backoffs = 0
-    for backoffs in range(1, opts.max_backoffs + 1):
-        pts = place(scale)
-        bad = offending(pts, scale)
-        if not bad.any():
-            break
-        # back off the offending columns and their neighbours; a column backed off often is given up
-        grow = bad.copy()
-        for x, y in ((0, 1), (1, 0)):
-            grow[e[bad[e[:, x]], y]] = True
-        tries[grow] += 1
-        scale[grow] = np.where(tries[grow] >= opts.backoffs_per_column, 0.0, 0.7 * scale[grow])
-    else:
-        pts = place(scale)
-        while (bad := offending(pts, scale)).any():  # whatever still offends keeps its unblended column
+    def back_off(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """The share of its displacement each column keeps (P,), the nodes it places and the rounds: the
+        offending columns and their neighbours lose 30 % at a time, a column backed off often is given up,
+        and whatever still offends after the last round keeps its unblended column."""
+        e, P = self.e, self.P
+        scale = np.ones(P)
+        tries = np.zeros(P, int)
+        backoffs = 0
+        for backoffs in range(1, self.opts.max_backoffs + 1):
+            pts = self.place(scale)
+            bad = self.offending(pts, scale)
+            if not bad.any():
+                return scale, pts, backoffs
+            grow = bad.copy()
+            for x, y in ((0, 1), (1, 0)):
+                grow[e[bad[e[:, x]], y]] = True
+            tries[grow] += 1
+            scale[grow] = np.where(tries[grow] >= self.opts.backoffs_per_column, 0.0, 0.7 * scale[grow])
+        pts = self.place(scale)
+        while (bad := self.offending(pts, scale)).any():
             scale[bad] = 0.0
-            pts = place(scale)
+            pts = self.place(scale)
+        return scale, pts, backoffs
+
+    def facts(self, out_hm: HexMesh, scale: np.ndarray, backoffs: int) -> dict:
+        """The ``blend`` report of the blended mesh: the angle reached at the edge, the edge's displacement,
+        the back-off, and the fusion."""
+        P, bone, edge = self.P, self.bone, self.ring == 0
+        reached = _edge_angles(out_hm, self.ring, P, self.L)
+        b_final = out_hm.points[:P]
+        fused_now = np.zeros(P, bool) if bone is None else np.linalg.norm(bone.closest(b_final) - b_final, axis=1) <= FUSED_TOL_MM
+        moved = self.disp[edge] * scale[edge]
+        return {
+            "applied": bool(scale[edge].max(initial=0) > 0),
+            "angle_target_deg": self.opts.angle_deg,
+            "angle_reached_deg": {"median": round(float(np.median(reached)), 1), "p95": round(float(np.percentile(reached, 95)), 1)},
+            "edge_displacement_mm": {"median": round(float(np.median(moved)), 3), "max": round(float(moved.max(initial=0)), 3)},
+            "reductions": int(backoffs),
+            "columns_reduced": int((scale < 1).sum()),
+            "fused_fraction": round(float(fused_now.mean()), 4),
+            "fusion": "none" if bone is None or not fused_now.any() else "full" if fused_now.all()
+            else "perimeter" if fused_now[edge].all() else "partial",
+        }
+
+
+def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptions()) -> tuple[HexMesh, dict]:
+    """Fuse (when a bone surface is given) and blend; returns the new mesh and the ``blend`` report."""
+    fused = np.zeros(_columns(hm)[0], bool)
+    if bone is not None:
+        bone = _Bone(bone)
+        hm, fused = fuse(hm, bone, opts)
+    edge = _EdgeBlend(hm, bone, fused, opts)
+    scale, pts, backoffs = edge.back_off()
     out_hm = dataclasses.replace(hm, points=pts)
-    reached = _edge_angles(out_hm, ring, P, L)
-    b_final = out_hm.points[:P]
-    fused_now = np.zeros(P, bool) if bone is None else np.linalg.norm(bone.closest(b_final) - b_final, axis=1) <= FUSED_TOL_MM
-    edge = ring == 0
-    facts.update({
-        "applied": bool(scale[edge].max(initial=0) > 0),
-        "angle_reached_deg": {"median": round(float(np.median(reached)), 1), "p95": round(float(np.percentile(reached, 95)), 1)},
-        "edge_displacement_mm": {"median": round(float(np.median(disp[edge] * scale[edge])), 3),
-                                 "max": round(float((disp[edge] * scale[edge]).max(initial=0)), 3)},
-        "reductions": int(backoffs),
-        "columns_reduced": int((scale < 1).sum()),
-        "fused_fraction": round(float(fused_now.mean()), 4),
-        "fusion": "none" if bone is None or not fused_now.any() else "full" if fused_now.all()
-        else "perimeter" if fused_now[edge].all() else "partial",
-    })
-    return out_hm, facts
+    return out_hm, edge.facts(out_hm, scale, backoffs)
 
 
 def _bone_normals(b: np.ndarray, quads: np.ndarray, column: np.ndarray) -> np.ndarray:

@@ -188,6 +188,139 @@ def _to_wall(tm, bone: np.ndarray, top: np.ndarray, edges: np.ndarray, contour: 
     return out_bone, out_top
 
 
+#: The directions a column may leave the bone along: blends of the bone-side normal (this weight) and the
+#: domain ray (the rest), the normal first.
+NORMAL_WEIGHTS = (1.0, 0.75, 0.5, 0.25, 0.0)
+#: Rounds of smoothing the articular surface, each column taking its neighbours' mean direction, or
+#: tilting by this much (a share of a unit vector) in any of four directions, re-cast onto the surface.
+SMOOTHING_ROUNDS, TILT = 4, 0.15
+#: The lengths a column still poor may take, as fractions of its length (it leaves the articular
+#: surface by a fraction of the local thickness, there only).
+LENGTH_FACTORS = (1.0, 0.9, 1.1, 0.8, 1.2)
+#: Rounds of untangling, how far an articular node may step off the surface in each (mm, either way
+#: along the bone normal and two tangents), and how far a bone-side node may slide along the bone
+#: (fractions of the element size, in eight directions).
+UNTANGLE_ROUNDS = 8
+STEP_OFF_MM = (0.4, 0.2, 0.1, 0.05)
+SLIDE_FRACTIONS = (0.3, 0.12)
+#: A column's height is at most this many times the median thickness, however stretched its bone-side
+#: quads (the floor for the edge ratio would otherwise raise it to absurd heights).
+FLOOR_CAP = 2.0
+
+
+@dataclass
+class _Columns:
+    """The columns of an extrusion before they are chosen: each quad-mesh node's bone-side point
+    (P, 3, LPS mm), the smoothed bone-side normal and the domain ray's direction (P, 3), the domain
+    ray's thickness (P,), the floor each column keeps (P,, mm) and which lie in the two outer rings."""
+
+    tm: object
+    quads: np.ndarray
+    edges: np.ndarray
+    layers: int
+    bone: np.ndarray
+    normal: np.ndarray
+    ray_dir: np.ndarray
+    fallback: np.ndarray
+    floor: np.ndarray
+    rim: np.ndarray
+
+    @classmethod
+    def start(cls, qm: QuadMesh, fp: Footprint, domain, layers: int, tm, probe: np.ndarray) -> "_Columns":
+        """The columns of the quad mesh ``qm`` over the footprint's height field, heights read at ``probe``
+        (P, 2: the contour's nodes inside it, where a fallback asks)."""
+        n, quads = len(qm.points), qm.quads
+        bone = domain.position(qm.points, fp.sample(fp.bone, probe))
+        ray_top = domain.position(qm.points, fp.sample(fp.joint, probe))
+        edges = quad_edges(quads)
+        # bone-side normals (quads are counter-clockwise seen from the joint: normals point to the joint)
+        normal = quad_node_normals(bone, quads)
+        for _ in range(3):
+            normal = 0.5 * unit(normal)
+            normal = normal + _node_mean(normal, edges, n)
+        fallback = np.linalg.norm(ray_top - bone, axis=1)
+        # rim: a minimum column height for the edge ratio, and smoothing of the outer rings
+        node_ring = np.full(n, np.iinfo(np.int64).max)
+        np.minimum.at(node_ring, quads.ravel(), np.repeat(qm.ring, 4))
+        node_ring[qm.contour] = -1
+        quad_longest = np.linalg.norm(bone[quads] - bone[np.roll(quads, -1, axis=1)], axis=2).max(1)
+        longest = np.zeros(n)
+        np.maximum.at(longest, quads.ravel(), np.repeat(quad_longest, 4))
+        floor = np.minimum(layers * longest / EDGE_RATIO_AIM, FLOOR_CAP * np.median(fallback))
+        return cls(tm, quads, edges, layers, bone, unit(normal), unit(ray_top - bone), fallback, floor, node_ring <= 1)
+
+    def cast(self, direction: np.ndarray) -> np.ndarray:
+        """Articular nodes (P, 3) along unit directions (P, 3) from the bone side: where the ray leaves the
+        cartilage (else, or where it finds an implausible thickness, the domain ray's), at least the floor,
+        the outer rings' thickness smoothed."""
+        eps = 0.05  # the rays start this far inside the bone side, mm
+        n = len(self.bone)
+        _, leave = crossings(self.tm, self.bone - eps * direction, direction)
+        along = leave - eps
+        ok = np.isfinite(along) & (along > 0.5 * self.fallback) & (along < 2.0 * self.fallback + 0.5)
+        thick = np.minimum(np.where(ok, along, self.fallback), 1.5 * self.fallback + 0.3)
+        for _ in range(3):
+            thick = np.maximum(thick, self.floor)
+            thick = np.where(self.rim, 0.5 * thick + 0.5 * _node_mean(thick, self.edges, n), thick)
+        return self.bone + direction * np.maximum(thick, self.floor)[:, None]
+
+    def choose(self, candidates: list[np.ndarray], good: float | None = None) -> np.ndarray:
+        """Per node, the candidate articular node (each (P, 3)) that maximises the worst element around it."""
+        if good is None:
+            return choose_tops(self.bone, np.stack(candidates), self.quads, self.layers)
+        return choose_tops(self.bone, np.stack(candidates), self.quads, self.layers, good=good)
+
+    def tangents(self) -> tuple[np.ndarray, np.ndarray]:
+        """Two unit tangents (P, 3 each) of the bone-side normal."""
+        t1 = unit(np.cross(self.normal, np.where(np.abs(self.normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
+        return t1, np.cross(self.normal, t1)
+
+    def smoothed_tops(self) -> np.ndarray:
+        """Articular nodes along the best blend of normal and ray, then smoothed on the articular surface:
+        each column may take the mean direction of its neighbours' columns or tilt a little, re-cast onto it."""
+        n, edges = len(self.bone), self.edges
+        top = self.choose([self.cast(unit(w * self.normal + (1 - w) * self.ray_dir)) for w in NORMAL_WEIGHTS])
+        t1, t2 = self.tangents()
+        for _ in range(SMOOTHING_ROUNDS):
+            d = unit(top - self.bone)
+            tries = [top, self.cast(unit(d + _node_mean(d, edges, n))), self.cast(unit(_node_mean(top, edges, n) - self.bone))]
+            tries += [self.cast(unit(d + a * t)) for a in (TILT, -TILT) for t in (t1, t2)]
+            top = self.choose(tries)
+        # last resort where a column is still poor: a slightly shorter or taller column
+        length_now = np.linalg.norm(top - self.bone, axis=1, keepdims=True)
+        variants = [self.bone + unit(top - self.bone) * np.maximum(length_now * f, self.floor[:, None]) for f in LENGTH_FACTORS]
+        return self.choose(variants, good=MIN_SCALED_JACOBIAN)
+
+
+def _untangle(qm: QuadMesh, fp: Footprint, domain, cols: _Columns, top: np.ndarray, h_mm: float,
+              inward: np.ndarray, probe_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where an element is still below the gate (a handful of nodes; the others stay put): an articular
+    node may step off the surface by fractions of a millimetre, or a bone-side node slide along the bone
+    (contour nodes along the contour), its column carried along.  Returns the bone-side and articular
+    nodes (P, 3 each)."""
+    n, edges, bone = len(qm.points), cols.edges, cols.bone
+    t1, t2 = cols.tangents()
+    u = qm.points.copy()
+    at = np.arange(n)
+    for _ in range(UNTANGLE_ROUNDS):
+        col = top - bone
+        length = np.linalg.norm(col, axis=1, keepdims=True)
+        tops = [top, _node_mean(top, edges, n), bone + unit(_node_mean(unit(col), edges, n)) * length]
+        tops += [top + a * t for s in STEP_OFF_MM for a in (s, -s) for t in (t1, t2, cols.normal)]
+        slides = [_onto_contour(qm, u + a * h_mm * d) for a in SLIDE_FRACTIONS for d in EIGHT_DIRECTIONS]
+        lifted = [domain.position(v, fp.sample(fp.bone, np.where(qm.contour[:, None], v + probe_mm * inward, v)))
+                  for v in slides]
+        bottoms = np.stack([bone] * len(tops) + lifted)
+        columns = np.stack(tops + [b + col for b in lifted])
+        k = choose_columns(bottoms, columns, cols.quads, cols.layers, good=MIN_SCALED_JACOBIAN)
+        if not k.any():  # nothing moved: another pass would offer the same candidates
+            break
+        slid = k >= len(tops)
+        u[slid] = np.stack(slides)[k[slid] - len(tops), at[slid]]
+        top, bone = columns[k, at], bottoms[k, at]
+    return bone, top
+
+
 def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyData, h_mm: float,
             probe_mm: float = 0.0) -> HexMesh:
     """Hex mesh of the cartilage over the quad mesh ``qm`` of element size ``h_mm``, between the
@@ -196,95 +329,26 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
     ``probe_mm``: contour nodes read their heights that far inside the contour,
     where a folded rim makes the height field jump right on it (a fallback: it costs coverage).
     """
-    n = len(qm.points)
-    quads = qm.quads
     tm = intersector(surface)
     inward = unit(-qm.sdf_gradient(qm.points))
     probe = np.where(qm.contour[:, None], qm.points + probe_mm * inward, qm.points)
-    bone = domain.position(qm.points, fp.sample(fp.bone, probe))
-    ray_top = domain.position(qm.points, fp.sample(fp.joint, probe))
-    edges = quad_edges(quads)
-
-    # bone-side normals (quads are counter-clockwise seen from the joint: normals point to the joint)
-    normal = quad_node_normals(bone, quads)
-    for _ in range(3):
-        normal = 0.5 * unit(normal)
-        normal = normal + _node_mean(normal, edges, n)
-    normal = unit(normal)
-
-    fallback = np.linalg.norm(ray_top - bone, axis=1)
-    ray_dir = unit(ray_top - bone)
-
-    # rim: a minimum column height for the edge ratio, and smoothing of the outer rings
-    node_ring = np.full(n, np.iinfo(np.int64).max)
-    np.minimum.at(node_ring, quads.ravel(), np.repeat(qm.ring, 4))
-    node_ring[qm.contour] = -1
-    quad_longest = np.linalg.norm(bone[quads] - bone[np.roll(quads, -1, axis=1)], axis=2).max(1)
-    longest = np.zeros(n)
-    np.maximum.at(longest, quads.ravel(), np.repeat(quad_longest, 4))
-    # (capped: a stretched bone-side quad must not raise a column to absurd heights)
-    floor = np.minimum(layers * longest / EDGE_RATIO_AIM, 2.0 * np.median(fallback))
-    rim = node_ring <= 1
-
-    def column(direction: np.ndarray) -> np.ndarray:
-        """Articular nodes along unit directions (P, 3) from the bone side."""
-        eps = 0.05
-        _, leave = crossings(tm, bone - eps * direction, direction)
-        along = leave - eps
-        ok = np.isfinite(along) & (along > 0.5 * fallback) & (along < 2.0 * fallback + 0.5)
-        thick = np.minimum(np.where(ok, along, fallback), 1.5 * fallback + 0.3)
-        for _ in range(3):
-            thick = np.maximum(thick, floor)
-            thick = np.where(rim, 0.5 * thick + 0.5 * _node_mean(thick, edges, n), thick)
-        return bone + direction * np.maximum(thick, floor)[:, None]
-
-    candidates = [column(unit(w * normal + (1 - w) * ray_dir)) for w in (1.0, 0.75, 0.5, 0.25, 0.0)]
-    top = choose_tops(bone, np.stack(candidates), quads, layers)
-    # smoothing constrained to the articular surface: each column may take the mean
-    # direction of its neighbours' columns, re-cast onto the surface
-    # ... or tilt a little in any of four directions, re-cast onto the surface
-    t1 = unit(np.cross(normal, np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])))
-    t2 = np.cross(normal, t1)
-    for _ in range(4):
-        d = unit(top - bone)
-        tries = [top, column(unit(d + _node_mean(d, edges, n))), column(unit(_node_mean(top, edges, n) - bone))]
-        tries += [column(unit(d + a * t)) for a in (0.15, -0.15) for t in (t1, t2)]
-        top = choose_tops(bone, np.stack(tries), quads, layers)
-    # last resort where a column is still poor: a slightly shorter or taller column
-    # (leaves the articular surface by a fraction of the local thickness, there only)
-    length_now = np.linalg.norm(top - bone, axis=1, keepdims=True)
-    variants = [bone + unit(top - bone) * np.maximum(length_now * f, floor[:, None]) for f in (1.0, 0.9, 1.1, 0.8, 1.2)]
-    top = choose_tops(bone, np.stack(variants), quads, layers, good=MIN_SCALED_JACOBIAN)
-    # untangling where an element is still below 0.5 (a handful of nodes; the others stay put):
-    # an articular node may step off the surface by fractions of a millimetre, or a bone-side
-    # node slide along the bone surface (contour nodes along the contour), its column carried along
-    u = qm.points.copy()
-    at = np.arange(n)
-    for _ in range(8):
-        col = top - bone
-        length = np.linalg.norm(col, axis=1, keepdims=True)
-        tops = [top, _node_mean(top, edges, n), bone + unit(_node_mean(unit(col), edges, n)) * length]
-        tops += [top + a * t for a in (0.4, -0.4, 0.2, -0.2, 0.1, -0.1, 0.05, -0.05) for t in (t1, t2, normal)]
-        slides = [_onto_contour(qm, u + a * h_mm * d) for a in (0.3, 0.12) for d in EIGHT_DIRECTIONS]
-        lifted = [domain.position(v, fp.sample(fp.bone, np.where(qm.contour[:, None], v + probe_mm * inward, v)))
-                  for v in slides]
-        bottoms = np.stack([bone] * len(tops) + lifted)
-        columns = np.stack(tops + [b + col for b in lifted])
-        k = choose_columns(bottoms, columns, quads, layers, good=MIN_SCALED_JACOBIAN)
-        if not k.any():  # nothing moved: another pass would offer the same candidates
-            break
-        slid = k >= len(tops)
-        u[slid] = np.stack(slides)[k[slid] - len(tops), at[slid]]
-        top, bone = columns[k, at], bottoms[k, at]
-    top = _edge_ratio_guard(bone, top, quads, layers)
+    cols = _Columns.start(qm, fp, domain, layers, tm, probe)
+    bone, top = _untangle(qm, fp, domain, cols, cols.smoothed_tops(), h_mm, inward, probe_mm)
+    top = _edge_ratio_guard(bone, top, qm.quads, layers)
     # the contour's columns out to the cartilage's wall, where it ends in one, as far as the elements allow
-    bone_wall, top_wall = _to_wall(tm, bone, top, edges, qm.contour)
-    bone, top = settle(bone, top, top_wall, quads, layers, bottom_target=bone_wall, sweeps=8)
+    bone_wall, top_wall = _to_wall(tm, bone, top, cols.edges, qm.contour)
+    bone, top = settle(bone, top, top_wall, qm.quads, layers, bottom_target=bone_wall, sweeps=8)
     # articular nodes the rim floor or the untangling lifted off the surface go back onto it
     # wherever the elements around them stay good
     _, closest = surface.find_closest_cell(top, return_closest_point=True)
-    _, top = settle(bone, top, closest, quads, layers)
+    _, top = settle(bone, top, closest, qm.quads, layers)
+    return _stack(qm, bone, top, layers)
 
+
+def _stack(qm: QuadMesh, bone: np.ndarray, top: np.ndarray, layers: int) -> HexMesh:
+    """The hexahedra of ``layers`` element layers interpolated along the columns from ``bone`` to ``top``
+    (P, 3 each), layer by layer from the bone side."""
+    n, quads = len(qm.points), qm.quads
     points = interpolate_layers(bone, top, layers)
     offsets = (np.arange(layers) * n)[:, None, None]
     hexes = np.concatenate([quads[None] + offsets, quads[None] + offsets + n], axis=2).reshape(-1, 8)

@@ -115,42 +115,56 @@ class KneeFields:
     meniscus: np.ndarray  # bool
 
 
-def knee_fields(u, v, w, p: KneeParams, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """Continuous fields (mm, negative inside) of every tissue, on broadcastable coordinates.
+@dataclass(frozen=True)
+class _Layout:
+    """Where a phantom knee's parts stand, mm, in the knee frame (u medial-lateral, v anterior, w
+    superior): the condyles' centre line (``u_c``, ``v_c``, ``w_c``) and radius, the tibial plateau's
+    top ``w_t``, the trochlea's ``v_tr``, the patella's centre (``v_p``, ``w_p``), the cartilage thicknesses."""
 
-    Cartilage fields are negative inside the cartilage shell on its articular
-    region; region limits enter as a +/-1 mm ramp so that they interpolate.
-    """
-    s = p.scale
-    R_m = p.condyle_radius
-    # the bones stand as far apart as their cartilages are thick (with the nominal spacing, a 1.4 x
-    # knee's femoral cartilage ran through the patellar cartilage onto the patella, and its cartilages
-    # met in walls no knee has)
-    fc_mm, tc_mm, pc_mm = p.cartilage_mm()
-    w_t = -tc_mm  # tibial plateau top
-    v_c = -6.0 * s
-    w_c = fc_mm + p.gap_mm + R_m
-    u_c = 20.0 * s
+    s: float
+    R_m: float
+    fc_mm: float
+    tc_mm: float
+    pc_mm: float
+    w_t: float
+    v_c: float
+    w_c: float
+    u_c: float
+    v_tr: float
+    v_p: float
+    w_p: float
 
-    # pose: varus/valgus about a condylar contact, then flexion about the condylar axis
-    pivot_u = -u_c if p.varus_deg >= 0 else u_c
-    uf, wf = _rotate(u, w, -p.varus_deg, pivot_u, fc_mm + p.gap_mm)
-    vf, wf = _rotate(v, wf, p.flexion_deg, v_c, w_c)
+    @classmethod
+    def of(cls, p: KneeParams) -> "_Layout":
+        # the bones stand as far apart as their cartilages are thick (with the nominal spacing, a 1.4 x
+        # knee's femoral cartilage ran through the patellar cartilage onto the patella, and its cartilages
+        # met in walls no knee has)
+        s, R_m = p.scale, p.condyle_radius
+        fc_mm, tc_mm, pc_mm = p.cartilage_mm()
+        v_c, w_c = -6.0 * s, fc_mm + p.gap_mm + R_m
+        v_tr = v_c + 0.55 * R_m
+        return cls(s, R_m, fc_mm, tc_mm, pc_mm, w_t=-tc_mm, v_c=v_c, w_c=w_c, u_c=20.0 * s, v_tr=v_tr,
+                   v_p=v_tr + 13.5 * s + fc_mm + pc_mm + 9.5 * s - 2.0, w_p=w_c + 0.45 * R_m + 6 * s)
 
-    # femur, in its own frame
+
+def _femur(uf, vf, wf, p: KneeParams, k: _Layout) -> tuple[np.ndarray, np.ndarray]:
+    """The femur's field in its own frame, and its intercondylar notch's."""
+    s, R_m, u_c, v_c, w_c = k.s, k.R_m, k.u_c, k.v_c, k.w_c
     med = sdf.rounded_cylinder_u(uf, vf, wf, (-u_c, v_c, w_c), R_m, 12.5 * s, 5.0)
     lat = sdf.rounded_cylinder_u(uf, vf, wf, (u_c, v_c, w_c + p.lateral_delta), R_m - p.lateral_delta, 12.5 * s, 5.0)
-    v_tr = v_c + 0.55 * R_m
-    troch = sdf.ellipsoid(uf, vf, wf, (0.0, v_tr, w_c + 0.45 * R_m), (31 * s, 13.5 * s, 21 * s))
+    troch = sdf.ellipsoid(uf, vf, wf, (0.0, k.v_tr, w_c + 0.45 * R_m), (31 * s, 13.5 * s, 21 * s))
     meta = sdf.ellipsoid(uf, vf, wf, (0.0, v_c + 5, w_c + R_m + 8), (34 * s, 19 * s, 26 * s))
     shaft = sdf.capsule_w(uf, vf, wf, (0.0, v_c + 5), 13.5 * s, w_c + 25, 400.0)
     femur = sdf.smooth_union(sdf.smooth_union(med, lat, 4.0), troch, 6.0)
     femur = sdf.smooth_union(sdf.smooth_union(femur, meta, 8.0), shaft, 10.0)
     notch = sdf.ellipsoid(uf, vf, wf, (0.0, v_c - 12 * s, w_c - 9 * s), (6.5 * s, 22 * s, 14 * s))
-    groove = sdf.capsule_w(uf, vf, wf, (0.0, v_tr + 13.5 * s + 3.0), 6.0 * s, -100.0, 400.0)
-    femur = sdf.subtract(sdf.subtract(femur, notch), groove)
+    groove = sdf.capsule_w(uf, vf, wf, (0.0, k.v_tr + 13.5 * s + 3.0), 6.0 * s, -100.0, 400.0)
+    return sdf.subtract(sdf.subtract(femur, notch), groove), notch
 
-    # tibia and fibula, in the knee frame
+
+def _tibia_and_fibula(u, v, w, k: _Layout) -> tuple[np.ndarray, np.ndarray]:
+    """The tibia's and the fibula's fields in the knee frame."""
+    s, w_t = k.s, k.w_t
     plateau = sdf.elliptic_slab_w(u, v, w, (0.0, 0.0), 38 * s, 26 * s, w_t - 16, w_t, 2.5)
     eminence = sdf.ellipsoid(u, v, w, (0.0, -2 * s, w_t), (6 * s, 14 * s, 7 * s))
     tmeta = sdf.ellipsoid(u, v, w, (0.0, 0.0, w_t - 22 * s), (33 * s, 24 * s, 20 * s))
@@ -163,36 +177,29 @@ def knee_fields(u, v, w, p: KneeParams, rng: np.random.Generator) -> dict[str, n
         sdf.capsule_w(u, v, w, (31 * s, -14 * s), 6.5 * s, -400.0, w_t - 18 * s),
         sdf.ellipsoid(u, v, w, (31 * s, -14 * s, w_t - 18 * s), (9 * s, 9 * s, 8 * s)),
     )
+    return tibia, fib
 
-    # patella rides in the trochlear groove, moving with the femur
-    v_p = v_tr + 13.5 * s + fc_mm + pc_mm + 9.5 * s - 2.0
-    w_p = w_c + 0.45 * R_m + 6 * s
-    patella = sdf.ellipsoid(uf, vf, wf, (1.5 * s, v_p, w_p), (21 * s, 9.5 * s, 22 * s))
 
-    if p.severity >= 2:  # osteophytes at the articular margins
-        for _ in range(2 * p.severity):
-            side = rng.choice([-1.0, 1.0])
-            r = (rng.uniform(1.5, 3.5),) * 3
-            if rng.random() < 0.5:
-                c = (side * (u_c + 12.5 * s), v_c + rng.uniform(-10, 5), w_c - R_m * rng.uniform(0.2, 0.6))
-                femur = np.minimum(femur, sdf.ellipsoid(uf, vf, wf, c, r))
-            else:
-                ang = rng.uniform(0, 2 * np.pi)
-                c = (37 * s * np.cos(ang), 25 * s * np.sin(ang), w_t - 1.0)
-                tibia = np.minimum(tibia, sdf.ellipsoid(u, v, w, c, r))
+def _osteophytes(femur, tibia, u, v, w, uf, vf, wf, p: KneeParams, k: _Layout, rng: np.random.Generator):
+    """Severity 2 and 3: osteophytes at the articular margins, on the femur or the tibia."""
+    s = k.s
+    for _ in range(2 * p.severity if p.severity >= 2 else 0):
+        side = rng.choice([-1.0, 1.0])
+        r = (rng.uniform(1.5, 3.5),) * 3
+        if rng.random() < 0.5:
+            c = (side * (k.u_c + 12.5 * s), k.v_c + rng.uniform(-10, 5), k.w_c - k.R_m * rng.uniform(0.2, 0.6))
+            femur = np.minimum(femur, sdf.ellipsoid(uf, vf, wf, c, r))
+        else:
+            ang = rng.uniform(0, 2 * np.pi)
+            c = (37 * s * np.cos(ang), 25 * s * np.sin(ang), k.w_t - 1.0)
+            tibia = np.minimum(tibia, sdf.ellipsoid(u, v, w, c, r))
+    return femur, tibia
 
-    def region(*conds):  # signed ramp: negative inside all conditions (each "expr < 0")
-        return np.maximum.reduce([np.broadcast_to(c, femur.shape) for c in conds]).astype(np.float32)
 
-    # cartilage shells on the articular regions
-    # femoral cartilage thins to nothing over 3 mm towards the intercondylar notch (whose walls carry
-    # the cruciate ligaments, not cartilage)
-    t_f = _thickness(p, uf, vf, wf, p.fc_mm, 0) * np.clip(notch / 3.0, 0.0, 1.0).astype(np.float32)
-    troch_zone = np.float32(1.0) / (1 + np.exp(-(vf - (v_c + 0.35 * R_m)) / 1.5))  # 0 on the condyles, 1 on the trochlea
-    if p.trochlea == "thin":
-        t_f = t_f * (1.0 - 0.6 * troch_zone).astype(np.float32)
-    t_t = _thickness(p, u, v, w, p.tc_mm, 1) + np.where(u > 0, np.float32(p.lateral_delta), np.float32(0))
-    t_p = _thickness(p, uf, vf, wf, p.pc_mm, 2)
+def _femoral_region(uf, vf, wf, region, p: KneeParams, k: _Layout) -> np.ndarray:
+    """Where the femur carries cartilage (negative inside): the condyles but their inner faces, the
+    trochlea (unless absent), less the full-thickness lesions."""
+    s, R_m, u_c, v_c, w_c = k.s, k.R_m, k.u_c, k.v_c, k.w_c
     condyles = region(wf - (w_c + 0.3 * R_m), np.abs(uf) - (u_c + 11.0 * s),
                       # the condyles' inner faces (|u| = 7.5 s, rounded over 5 mm) face the notch: bare
                       -np.maximum(np.abs(uf) - (7.5 * s + 2.0), vf - (v_c + 6)))
@@ -206,11 +213,45 @@ def knee_fields(u, v, w, p: KneeParams, rng: np.random.Generator) -> dict[str, n
         centre = (side * u_c + along * s, v_c - radius * np.sin(a), w_c + (p.lateral_delta if lateral else 0.0) - radius * np.cos(a))
         ball = np.sqrt((uf - centre[0]) ** 2 + (vf - centre[1]) ** 2 + (wf - centre[2]) ** 2) - r
         fem_region = np.maximum(fem_region, -ball)
+    return fem_region
+
+
+def knee_fields(u, v, w, p: KneeParams, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Continuous fields (mm, negative inside) of every tissue, on broadcastable coordinates.
+
+    Cartilage fields are negative inside the cartilage shell on its articular
+    region; region limits enter as a +/-1 mm ramp so that they interpolate.
+    """
+    k = _Layout.of(p)
+    s, R_m, u_c, v_c, w_c, w_t = k.s, k.R_m, k.u_c, k.v_c, k.w_c, k.w_t
+    # pose: varus/valgus about a condylar contact, then flexion about the condylar axis
+    pivot_u = -u_c if p.varus_deg >= 0 else u_c
+    uf, wf = _rotate(u, w, -p.varus_deg, pivot_u, k.fc_mm + p.gap_mm)
+    vf, wf = _rotate(v, wf, p.flexion_deg, v_c, w_c)
+    femur, notch = _femur(uf, vf, wf, p, k)
+    tibia, fib = _tibia_and_fibula(u, v, w, k)
+    # patella rides in the trochlear groove, moving with the femur
+    patella = sdf.ellipsoid(uf, vf, wf, (1.5 * s, k.v_p, k.w_p), (21 * s, 9.5 * s, 22 * s))
+    femur, tibia = _osteophytes(femur, tibia, u, v, w, uf, vf, wf, p, k, rng)
+
+    def region(*conds):  # signed ramp: negative inside all conditions (each "expr < 0")
+        return np.maximum.reduce([np.broadcast_to(c, femur.shape) for c in conds]).astype(np.float32)
+
+    # cartilage shells on the articular regions
+    # femoral cartilage thins to nothing over 3 mm towards the intercondylar notch (whose walls carry
+    # the cruciate ligaments, not cartilage)
+    t_f = _thickness(p, uf, vf, wf, p.fc_mm, 0) * np.clip(notch / 3.0, 0.0, 1.0).astype(np.float32)
+    troch_zone = np.float32(1.0) / (1 + np.exp(-(vf - (v_c + 0.35 * R_m)) / 1.5))  # 0 on the condyles, 1 on the trochlea
+    if p.trochlea == "thin":
+        t_f = t_f * (1.0 - 0.6 * troch_zone).astype(np.float32)
+    t_t = _thickness(p, u, v, w, p.tc_mm, 1) + np.where(u > 0, np.float32(p.lateral_delta), np.float32(0))
+    t_p = _thickness(p, uf, vf, wf, p.pc_mm, 2)
+    fem_region = _femoral_region(uf, vf, wf, region, p, k)
     tib_region = region((w_t - 1.5) - w, 6.5 * s - np.abs(u),
                         # the medial plateau is longer antero-posteriorly than the lateral one
                         10 * (np.sqrt((u / (35 * s)) ** 2 + (v / np.where(u < 0, 24 * s, 20 * s)) ** 2) - 1.0))
-    pat_region = region(vf - (v_p - 2.0),
-                        10 * (np.sqrt(((uf - 1.5 * s) / (18 * s)) ** 2 + ((wf - w_p) / (19 * s)) ** 2) - 1.0))
+    pat_region = region(vf - (k.v_p - 2.0),
+                        10 * (np.sqrt(((uf - 1.5 * s) / (18 * s)) ** 2 + ((wf - k.w_p) / (19 * s)) ** 2) - 1.0))
     rho = np.sqrt(((np.abs(u) - u_c) / (15 * s)) ** 2 + (v / (21 * s)) ** 2)
     meniscus = region(10 * (0.72 - rho), 10 * (rho - 1.15), w_t - w, (w - w_t) - 14 * (rho - 0.68), 6 * s - np.abs(u))
     return {
