@@ -44,6 +44,11 @@ def interpolate_layers(bottom: np.ndarray, top: np.ndarray, layers: int) -> np.n
     return (bottom[None] + (top - bottom)[None] * frac).reshape(-1, 3)
 
 
+#: How far behind its origin a ray starts when what it looks for may already overlap it (a cartilage
+#: seated into another, a femur that reaches below a plate's rim), mm: farther than any overlap found.
+RAY_BACKOFF_MM = 20.0
+
+
 def ray_distances(origins: np.ndarray, direction: np.ndarray, points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Distance (mm) along unit ``direction`` (3,) from each origin (K, 3) to the first hit on the
     triangle surface (points (P, 3) mm, triangles (T, 3)); NaN where a ray misses (Embree, trimesh)."""

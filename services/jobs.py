@@ -19,8 +19,7 @@ import uuid
 from pathlib import Path
 
 from kneemesh_core.io.files import atomic_write_json
-from kneemesh_core.job import HEX_STEPS, INGEST, REPORT_FILE, JobOptions, plan, read_step, utc_now
-from kneemesh_core.tissues import BONES, CARTILAGES
+from kneemesh_core.job import INGEST, REPORT_FILE, STAGES, JobOptions, plan, read_step, utc_now
 from services.store import FileStore
 
 STATES = ("queued", "running", "succeeded", "failed", "cancelled")
@@ -53,10 +52,6 @@ class JobRecord:
     cancelled: bool = False
     deleted: bool = False
     created_ns: int = 0  # submission order (created_at ties within a millisecond)
-
-
-def _kind(step: str) -> str:
-    return "bone" if step in BONES else "cartilage" if step in CARTILAGES else "hexmesh" if step in HEX_STEPS else step
 
 
 class Jobs:
@@ -99,11 +94,12 @@ class Jobs:
         """One entry per planned step: state pending/running/done/failed, times, tissue status, error."""
         out = self.out_dir(rec)
         rows = []
-        for stage_index, stage in enumerate(plan(JobOptions.from_dict(rec.options))):
+        options = JobOptions.from_dict(rec.options)
+        for stage_index, stage in enumerate(plan(options)):
             for step in stage:
                 r = read_step(out, step) or {"state": "pending"}
                 result = r.get("result") if isinstance(r.get("result"), dict) else {}
-                row = {"step": step, "kind": _kind(step), "stage": stage_index, "state": r["state"],
+                row = {"step": step, "kind": STAGES.of(options, step).name, "stage": stage_index, "state": r["state"],
                        "started_at": r.get("started_at"), "finished_at": r.get("finished_at"),
                        "seconds": r.get("seconds"), "status": result.get("status"),
                        "task_id": r.get("task_id"), "worker": r.get("worker")}

@@ -8,6 +8,7 @@ import pyvista as pv
 
 from conftest import OAI, PYMSKT_RIGHT, real
 from kneemesh_core.hexmesh import BlendOptions, HexOptions, blend_cartilage, mesh_cartilage
+from kneemesh_core.hexmesh import targets as T
 from kneemesh_core.hexmesh.conform import conform_bone
 from kneemesh_core.hexmesh.quality import boundary_crossings, crossing_nodes
 from kneemesh_core.knee import load_knee
@@ -38,11 +39,11 @@ def test_blend_meets_quality_targets(blended):
     b = cm.facts["blend"]
     assert b["applied"] and b["passed"], b
     sj = cm.quality["scaled_jacobian"]
-    assert sj.min() >= 0.2 and (sj >= 0.5).mean() >= 0.99
-    assert sj[cm.mesh.ring >= 2].min() >= 0.5  # beyond the two outer rings nothing drops below 0.5
+    assert sj.min() >= T.BLEND_MIN_SCALED_JACOBIAN and (sj >= T.MIN_SCALED_JACOBIAN).mean() >= T.BLEND_FRAC_GOOD
+    assert sj[cm.mesh.ring >= 2].min() >= T.MIN_SCALED_JACOBIAN  # beyond the two outer rings nothing drops below 0.5
     assert b["inverted"] == 0 and b["collapsed"] == 0
     assert boundary_crossings(cm.mesh.points, cm.mesh.hexes) == 0
-    assert signed_distance(cm.mesh.points, bone).min() >= -0.05  # nothing inside the bone
+    assert signed_distance(cm.mesh.points, bone).min() >= -T.FUSED_TOL_MM  # nothing inside the bone
     if "defect" in name:
         assert cm.facts["defect_holes"] >= 1  # the holes are blended too and stay holes
 
@@ -54,7 +55,7 @@ def test_edge_meets_bone_near_the_angle_and_is_fused(blended):
     assert cm.facts["fused_fraction"] >= 0.95
     P = len(cm.mesh.points) // (cm.mesh.node_layer.max() + 1)
     d = np.abs(signed_distance(cm.mesh.points[:P], bone))
-    assert np.mean(d <= 0.05) == pytest.approx(cm.facts["fused_fraction"], abs=0.01)
+    assert np.mean(d <= T.FUSED_TOL_MM) == pytest.approx(cm.facts["fused_fraction"], abs=0.01)
     # the unblended mesh was steeper at its edge: blending changed the geometry there, not inside
     moved = np.linalg.norm(cm.mesh.points - raw.mesh.points, axis=1)
     deep = np.isin(np.arange(len(moved)) % P, np.unique(raw.mesh.hexes[raw.mesh.ring >= 4] % P))
@@ -98,7 +99,7 @@ def test_blend_without_a_bone_keeps_the_bone_side_and_says_so():
     cm = mesh_cartilage(knee.labels, "medial_tibial_cartilage", HexOptions())
     out = blend_cartilage(cm, None, BlendOptions())
     assert out.facts["fused_fraction"] == 0.0 and "no bone" in out.facts["blend"]["reason"]
-    assert out.facts["blend"]["passed"] and out.quality["scaled_jacobian"].min() >= 0.2
+    assert out.facts["blend"]["passed"] and out.quality["scaled_jacobian"].min() >= T.BLEND_MIN_SCALED_JACOBIAN
 
 
 def test_crossing_edges_finds_overlaps():
@@ -157,7 +158,7 @@ def test_bone_gives_way_where_a_fused_cartilage_stays_inside_it():
     # knee ships for review with that reason; every other node comes out)
     assert facts["applied"] and per["penetration_mm"] > 0.5 and per["penetration_conformed_mm"] <= 0.1, facts
     depth = -signed_distance(cm.mesh.points, conformed)
-    assert depth.max() <= 0.1 and (depth > 0.05).sum() <= 2
+    assert depth.max() <= 0.1 and (depth > T.FUSED_TOL_MM).sum() <= 2
     assert np.array_equal(conformed.faces, tibia.faces) and conformed.n_points == tibia.n_points
     assert crossing_edges(conformed) <= crossing_edges(tibia)
     dent = np.linalg.norm(conformed.points - tibia.points, axis=1)

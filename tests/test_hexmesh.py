@@ -13,6 +13,7 @@ import SimpleITK as sitk
 
 from conftest import OAI, PYMSKT_LEFT, SAMPLE, real
 from kneemesh_core.hexmesh import HexOptions, mesh_cartilage
+from kneemesh_core.hexmesh import targets as T
 from kneemesh_core.hexmesh.optimize import layer_quality
 from kneemesh_core.hexmesh.quality import hex_quality, passes_gate
 from kneemesh_core.io import voxel_to_lps
@@ -33,11 +34,7 @@ def sample():
 def test_plates_and_patella_pass_gate_and_fidelity(sample, tissue):
     cm = mesh_cartilage(sample.labels, tissue)
     f = cm.facts
-    assert f["gate_passed"], f
-    assert f["min_scaled_jacobian"] >= 0.5 and f["collapsed"] == 0 and f["inverted"] == 0
-    assert f["frac_edge_ratio_above_6"] <= 0.001
-    assert abs(f["volume_error"]) <= 0.05 and f["coverage"] >= 0.97
-    assert f["surface_deviation_mm"]["median"] <= 0.15 and f["surface_deviation_mm"]["p95"] <= 0.5
+    _meets_gate_and_fidelity(f)
     assert f["n_layers"] == 4 and 0.85 <= f["element_size_mm"] <= 1.2
     # every column has exactly four layers: hexes = 4 x quads, nodes = 5 x nodes per layer
     assert len(cm.mesh.hexes) % 4 == 0 and len(cm.mesh.points) % 5 == 0
@@ -48,17 +45,19 @@ def test_plates_and_patella_pass_gate_and_fidelity(sample, tissue):
 
 def test_femoral_cartilage_meets_gate_with_fallbacks(sample):
     f = mesh_cartilage(sample.labels, "femoral_cartilage").facts
-    assert f["gate_passed"] and f["min_scaled_jacobian"] >= 0.5, f
-    assert f["coverage"] >= 0.97 and abs(f["volume_error"]) <= 0.05
+    assert f["gate_passed"] and f["min_scaled_jacobian"] >= T.MIN_SCALED_JACOBIAN, f
+    assert f["coverage"] >= T.MIN_COVERAGE and abs(f["volume_error"]) <= T.VOLUME_TOL
     assert f["domain"]["kind"] == "cylinder" and abs(f["domain"]["axis"][0]) > 0.9  # condylar axis ~ left-right
 
 
 def _meets_gate_and_fidelity(f: dict) -> None:
+    """Every target of :mod:`kneemesh_core.hexmesh.targets`, read there."""
     assert f["gate_passed"] and f["fidelity_passed"], f
-    assert f["min_scaled_jacobian"] >= 0.5 and f["collapsed"] == 0 and f["inverted"] == 0
-    assert f["frac_edge_ratio_above_6"] <= 0.001
-    assert abs(f["volume_error"]) <= 0.05 and f["coverage"] >= 0.97
-    assert f["surface_deviation_mm"]["median"] <= 0.15 and f["surface_deviation_mm"]["p95"] <= 0.5
+    assert f["min_scaled_jacobian"] >= T.MIN_SCALED_JACOBIAN and f["collapsed"] == 0 and f["inverted"] == 0
+    assert f["frac_edge_ratio_above_6"] <= T.MAX_FRAC_EDGE_RATIO
+    assert abs(f["volume_error"]) <= T.VOLUME_TOL and f["coverage"] >= T.MIN_COVERAGE
+    assert f["surface_deviation_mm"]["median"] <= T.MAX_DEVIATION_MEDIAN_MM
+    assert f["surface_deviation_mm"]["p95"] <= T.MAX_DEVIATION_P95_MM
 
 
 def test_left_knee_lateral_plate_on_the_left():
@@ -177,14 +176,14 @@ def test_pipeline_writes_vtu_in_physical_space(tmp_path, sample):
     g = pv.read(tmp_path / "meshes" / "lateral_tibial_cartilage.vtu")
     assert g.celltypes.tolist() == [pv.CellType.HEXAHEDRON] * g.n_cells
     # C3D8 node order: positive Jacobians as stored
-    assert g.cell_quality("scaled_jacobian").cell_data["scaled_jacobian"].min() >= 0.5
+    assert g.cell_quality("scaled_jacobian").cell_data["scaled_jacobian"].min() >= T.MIN_SCALED_JACOBIAN
     # the headline figures are the shipped file's, as VTK computes them; the gate's are under "gate"
     for tissue in ("femoral_cartilage", "lateral_tibial_cartilage"):
         shipped = pv.read(tmp_path / "meshes" / f"{tissue}.vtu").cell_quality("scaled_jacobian")["scaled_jacobian"]
         entry = report["tissues"][tissue]
         assert entry["min_scaled_jacobian"] == pytest.approx(float(shipped.min()), abs=1e-4)
         assert entry["n_elements"] == len(shipped) and entry["gate"]["gate_passed"]
-        assert entry["gate"]["min_scaled_jacobian"] >= 0.5
+        assert entry["gate"]["min_scaled_jacobian"] >= T.MIN_SCALED_JACOBIAN
     # the headline fidelity figures are the blended file's too; those of the mesh before the blend,
     # which the targets judge with the blended file beyond the rim the blend reshapes, are under "gate"
     blend = e["blend"]
@@ -192,7 +191,8 @@ def test_pipeline_writes_vtu_in_physical_space(tmp_path, sample):
                                                            "surface_deviation_mm", "passed"}
     assert e["volume_ml"] == blend["fidelity"]["volume_ml"] == pytest.approx(g.volume / 1000, rel=1e-3)
     assert e["coverage"] == blend["fidelity"]["coverage"] and 0.5 < e["coverage"] <= 1.0
-    assert e["gate"]["fidelity_passed"] and e["gate"]["coverage"] >= 0.97 and abs(e["gate"]["volume_error"]) <= 0.05
+    assert e["gate"]["fidelity_passed"] and e["gate"]["coverage"] >= T.MIN_COVERAGE
+    assert abs(e["gate"]["volume_error"]) <= T.VOLUME_TOL
     assert blend["beyond_rim"]["passed"] and e["fidelity_passed"]
     # physical LPS mm: the mesh sits on the lateral plate (right knee: lateral faces -x)
     mtc = pv.read(tmp_path / "meshes" / "medial_tibial_cartilage.vtu")
@@ -304,13 +304,13 @@ def test_cartilage_thinner_than_the_columns_floor_tries_smaller_elements_first()
     0.69 mm tall (the edge ratio), 13 % more volume than the label, which no fallback at that element size
     changes (the chain ran seven of them before smaller elements, whose floor is 0.52 mm).  The floor's
     excess is measured on the default attempt's footprint, and smaller elements come next."""
-    from kneemesh_core.hexmesh.mesher import MAX_FLOOR_EXCESS, _quads, _rays, floor_excess
+    from kneemesh_core.hexmesh.mesher import _quads, _rays, floor_excess
 
     labels = _plate_on_bone(1.0, thin_half_mm=0.5)
     opts, cache = HexOptions(), {}
     _, _, domain, hf = _rays(labels, "medial_tibial_cartilage", opts, 1.0, cache)
     fp, _ = _quads(hf, domain, opts, 1.0, cache)
-    assert floor_excess(fp, 4, 1.0) > 0.1 and floor_excess(fp, 4, 0.75) < MAX_FLOOR_EXCESS
+    assert floor_excess(fp, 4, 1.0) > 0.1 and floor_excess(fp, 4, 0.75) < T.MAX_FLOOR_EXCESS
     assert floor_excess(fp, 2, 1.0) < 0.001  # the floor of two 1 mm layers (0.34 mm) only at the rim
     f = mesh_cartilage(labels, "medial_tibial_cartilage").facts
     assert f["attempts"] == ["default", "smaller_elements"] and f["n_layers"] == 4, f["attempts"]

@@ -161,9 +161,15 @@ def test_compare_metrics():
     shifted.CopyInformation(img)
     m = compare(shifted, img)["femur"]
     assert m["dice"] == pytest.approx(0.9, abs=1e-6) and 0.2 < m["assd_mm"] < 1.0 and m["hd95_mm"] == pytest.approx(1.0)
-    other = sitk.GetImageFromArray(a[:, :, :30].copy())
-    with pytest.raises(KneeMeshError):
-        compare(other, img)
+    # another grid of the same knee: the reference is resampled onto the prediction's (the one grid rule)
+    cropped = sitk.GetImageFromArray(a[:, :, :30].copy())
+    cropped.SetSpacing(img.GetSpacing())
+    assert compare(cropped, img)["femur"]["dice"] == 1.0
+    far = sitk.GetImageFromArray(a)
+    far.SetSpacing(img.GetSpacing())
+    far.SetOrigin((1000.0, 0.0, 0.0))  # shares no space with the reference: not the same knee
+    with pytest.raises(KneeMeshError, match="share no space"):
+        compare(far, img)
 
 
 def test_split_is_by_subject():

@@ -19,6 +19,7 @@ import SimpleITK as sitk
 from fastapi.testclient import TestClient
 
 from conftest import OAI, PYMSKT_RIGHT, SAMPLE, real
+from kneemesh_core.hexmesh import targets as T
 from kneemesh_core.segmentation.infer import DEFAULT_MODEL
 from service_helpers import RedisServer, Worker, free_port, poll, wait_for
 from services.api import create_app
@@ -101,7 +102,8 @@ def test_label_map_job_runs_every_tissue_as_its_own_celery_task(stack):
     assert hexes.n_cells > 500 and set(np.unique(hexes.celltypes)) == {pv.CellType.HEXAHEDRON}
     blend = report["tissues"]["medial_tibial_cartilage"]["blend"]  # fused onto the bone the job meshed first
     assert blend["passed"] and report["tissues"]["medial_tibial_cartilage"]["fused_fraction"] > 0.9
-    assert hexes["scaled_jacobian"].min() >= 0.2 and (hexes["scaled_jacobian"] >= 0.5).mean() >= 0.99
+    sj = hexes["scaled_jacobian"]
+    assert sj.min() >= T.BLEND_MIN_SCALED_JACOBIAN and (sj >= T.MIN_SCALED_JACOBIAN).mean() >= T.BLEND_FRAC_GOOD
 
 
 @pytest.mark.skipif(not DEFAULT_MODEL.exists(), reason="no shipped segmentation model")

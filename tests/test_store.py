@@ -36,7 +36,7 @@ def test_plan_meshes_cartilage_beside_the_bones_and_blends_it_after():
 
 def test_a_step_waits_only_for_what_it_reads_and_the_cartilage_meshes_start_first():
     stages = plan(JobOptions())
-    waits = needs(stages)
+    waits = needs(JobOptions())
     # a blend waits for its own mesh and its bone's, not for the other tissues of their stage
     assert waits["femoral_cartilage"] == {INGEST, "hex_femoral_cartilage", "femur"}
     assert waits["patellar_cartilage"] == {INGEST, "hex_patellar_cartilage", "patella"}
@@ -45,7 +45,7 @@ def test_a_step_waits_only_for_what_it_reads_and_the_cartilage_meshes_start_firs
     assert waits[CONFORM] == before and waits[DECKS] == waits[OVERLAPS] == before | {CONFORM}
     assert waits[REPORT] == set(sum(stages[:-1], ()))
     # an image's segmentation comes before everything else
-    assert SEGMENT in needs(plan(JobOptions(input_type="image")))["femoral_cartilage"]
+    assert SEGMENT in needs(JobOptions(input_type="image"))["femoral_cartilage"]
     # the cartilages' meshes first (the longest, least predictable steps), then the bones, then the blend
     # of the femoral cartilage and the anatomy before the short blends
     order = start_order(stages)

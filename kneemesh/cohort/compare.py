@@ -11,10 +11,12 @@ import pyvista as pv
 import SimpleITK as sitk
 
 from kneemesh_core.errors import KneeMeshError
+from kneemesh_core.fe.results import loaded
 from kneemesh_core.fe.run import RESULT_FILES
 from kneemesh_core.io.files import atomic_write_text
 from kneemesh_core.job.outputs import LABELS_FILE, MESHES_DIR
-from kneemesh_core.metrics.compare import contact_differences, dice, surface_deviation
+from kneemesh_core.metrics.compare import contact_differences, surface_deviation
+from kneemesh_core.metrics.labels import dice
 from kneemesh_core.tissues import CARTILAGES
 
 
@@ -32,7 +34,8 @@ def compare(a: Path, b: Path, out: Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     summary: dict = {"a": str(a), "b": str(b)}
     if (a / LABELS_FILE).exists() and (b / LABELS_FILE).exists():
-        summary["dice"] = dice(sitk.ReadImage(str(a / LABELS_FILE)), sitk.ReadImage(str(b / LABELS_FILE)))
+        summary["dice"] = {t: None if d is None else round(d, 5) for t, d in
+                           dice(sitk.ReadImage(str(a / LABELS_FILE)), sitk.ReadImage(str(b / LABELS_FILE))).items()}
     deviations = {}
     for t in CARTILAGES:
         fa, fb = a / MESHES_DIR / f"{t}.vtu", b / MESHES_DIR / f"{t}.vtu"
@@ -82,7 +85,7 @@ def _plot_contact(ra: dict, rb: dict, path: Path) -> None:
         for row, (key, label) in enumerate((("area_mm2", "contact area, mm^2"), ("peak_pressure_mpa", "peak pressure, MPa"))):
             ax = axs[row, col]
             for r, style, name in ((ra, "-o", "A"), (rb, "--s", "B")):
-                inc = [i for i in r["increments"] if i["time"] >= 1.0]
+                inc = loaded(r["increments"])
                 ax.plot([i["flexion_deg"] for i in inc], [i[side][key] for i in inc], style, ms=3, label=name)
             ax.set_title(side, fontsize=9)
             ax.set_xlabel("flexion, deg")

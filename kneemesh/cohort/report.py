@@ -19,9 +19,11 @@ import numpy as np
 
 from kneemesh.cohort.submit import DONE, STATE_FILE
 from kneemesh_core import __version__
+from kneemesh_core.fe.results import loaded
 from kneemesh_core.fe.run import RESULT_FILES
 from kneemesh_core.io.files import atomic_write_text
-from kneemesh_core.job import REPORT_FILE
+from kneemesh_core.job import REPORT_FILE, STAGES
+from kneemesh_core.job.stages import TISSUES_SECTION
 from kneemesh_core.tissues import CARTILAGES, TISSUES
 
 REPORT_HTML = "report.html"
@@ -106,7 +108,7 @@ def _contact_figure(results: dict) -> str | None:
 
     fig, axs = plt.subplots(1, 2, figsize=(11, 3.6), sharey=True)
     for r in results.values():
-        inc = [i for i in r["increments"] if i["time"] >= 1.0]
+        inc = loaded(r["increments"])
         for ax, side in zip(axs, ("medial", "lateral")):
             ax.plot([i["flexion_deg"] for i in inc], [i[side]["force_n"] for i in inc], alpha=0.6, lw=1)
     for ax, side in zip(axs, ("medial", "lateral")):
@@ -154,9 +156,9 @@ def render(root: Path, data: dict) -> str:
         for t, e in r.get("tissues", {}).items():
             if e.get("status") in ("failed", "review"):
                 failures.append([kid, t, e["status"], "; ".join(e.get("reasons") or [e.get("reason") or ""])])
-        for stage in ("anatomy", "fe", "simulation"):
-            if isinstance(r.get(stage), dict) and r[stage].get("status") == "failed":
-                failures.append([kid, stage, "failed", r[stage].get("reason", "")])
+        for section in (s.section for s in STAGES if s.section not in (None, TISSUES_SECTION)):
+            if isinstance(r.get(section), dict) and r[section].get("status") == "failed":
+                failures.append([kid, section, "failed", r[section].get("reason", "")])
     for kid, v in lost.items():
         failures.append([kid, "job", v.get("state", "unfinished"), v.get("reason") or v.get("last_error") or ""])
     seconds = [r["_timing"]["job_seconds"] for r in knees.values() if "_timing" in r] or \

@@ -3,7 +3,7 @@
 Why.  Without menisci the femur of a quasi-static flexion slides off the convex lateral plate:
 on the sample knee the femur moved 9 mm posteriorly and rotated 18 deg by 27 deg of flexion,
 the lateral condyle left the plate's posterior rim and the run stopped at 30 deg, whatever the
-ligament and stabiliser settings (``bench/RESULTS.md``, session 11).  In a knee the menisci cup
+ligament and stabiliser settings.  In a knee the menisci cup
 the condyles; the paper's model left them out and calibrated its ligaments to make up for them.
 
 What.  Each meniscus is a C-shaped ring of hexahedra (one layer, rigid with the tibia) that
@@ -29,7 +29,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
-from kneemesh_core.geometry import grid_quads, hex_sheet, plane_basis, ray_distances
+from kneemesh_core.geometry import RAY_BACKOFF_MM, grid_quads, hex_sheet, plane_basis, ray_distances
 
 #: How far the wedge reaches over the plate from its rim, and beyond the rim, mm (a meniscus
 #: covers the outer third or so of a plate; its body is 8-12 mm wide).
@@ -119,7 +119,7 @@ def wedge(plate: tuple[np.ndarray, np.ndarray], femoral: list[tuple[np.ndarray, 
     miss = ~np.isfinite(base)
     if miss.any():  # beyond the plate: the height of its nearest node
         base[miss] = along[cKDTree(uv).query(q.reshape(-1, 2)[miss])[1]]
-    below = 20.0  # rays start this far below the plate, so a femur that overlaps it is found too
+    below = RAY_BACKOFF_MM  # rays start below the plate, so a femur that overlaps it is found too
     gaps = np.stack([ray_distances(flat + (base - below)[:, None] * axis, axis, *f) for f in femoral])
     gap = np.where(np.isfinite(gaps).any(0), np.min(np.nan_to_num(gaps, nan=np.inf), axis=0), np.nan) - below
     rise = HEIGHT_MM * np.clip((stations + INNER_MM) / INNER_MM, 0.0, 1.0)

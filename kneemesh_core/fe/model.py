@@ -1,120 +1,41 @@
-"""The knee model a deck describes, in the deck's frame.
+"""The knee model a deck describes, assembled from the knee's meshes and anatomy, in the deck's frame.
 
-**Frame.** Millimetres, origin at the femoral frame's origin (the middle of the flexion axis);
-X the flexion axis pointing to the patient's right, Y anterior, Z superior (along the femur's
-shaft).  The same right-handed frame for a left and a right knee, so a positive rotation about
-X is flexion of the femur (its shaft turning posteriorly) on both.  ``frame`` holds the LPS
-origin and axes to map results back.
+**Frame.** Millimetres, origin at the femoral frame's origin (the middle of the flexion axis); X the
+flexion axis pointing to the patient's right, Y anterior, Z superior (along the femur's shaft): the
+same right-handed frame for a left and a right knee, so a positive rotation about X is flexion of the
+femur on both.  ``frame`` holds the LPS origin and axes to map results back.
 
-**Bodies.** Femur, tibia and patella are rigid bodies, each with its bone surface and its
-cartilage: the femoral cartilage with the femur; the medial and lateral tibial cartilage with
-the tibia; the patellar cartilage with the patella.  Rigid cartilage (the paper's choice) keeps
-only the articular layer of hexahedra (deeper layers move with the bone and change nothing; the
-bone-side surface is then the articular layer's deep face), deformable cartilage every layer.
+**Bodies.** Femur, tibia and patella are rigid bodies, each with its bone shell and its cartilage
+(rigid cartilage, the paper's choice, keeps only the articular layer of hexahedra); the ligament fibres
+of ``attachments.json`` and the quadriceps are springs between them; the cartilages touch through
+linear pressure-overclosure contact (:func:`kneemesh_core.fe.physics.contact_stiffness`).  Two rigid
+surrogates join them: the menisci on the plates' rims (:mod:`.menisci`) and the prefemoral sheet under
+the patella in extension (:mod:`.prefemoral`).
 
-**Contact.** Linear pressure-overclosure between articular surfaces: medial and lateral tibial
-on femoral, patellar on femoral.  The stiffness stands for the two cartilage layers it replaces,
-springs in series, each a thin elastic layer bonded to bone (the elastic foundation of Blankevoort
-et al. 1991 and Bei & Fregly 2004): K = M / (h_1 + h_2), M = (1 - nu) E / ((1 + nu)(1 - 2 nu)) the
-modulus of a layer that cannot bulge sideways, E and nu the cartilage's modulus and Poisson ratio
-and h the median thickness of each cartilage (N/mm^3).
+**Seating.** The image pose may start with the cartilages apart or overlapping (0.3-0.6 mm on real OA
+knees): :func:`seat_femur` and :func:`seat_patella` move the femur and the patella until they touch (the
+femur on by the depth that carries the joint load), and the report keeps the overlaps they removed.
 
-**Ligaments.** Each fibre of ``attachments.json`` is a tension-only nonlinear spring with the
-Blankevoort (1991) law as OpenSim implements it (strain e = L/L0 - 1; 0 for e <= 0,
-k e^2 / (2 e_t) up to e_t = 0.06, k (e - e_t/2) beyond) and a slope of 1e-3 k/L0 in compression
-so that a slack fibre leaves no singular tangent.
-
-**Seating.** The image pose may start with the cartilages apart or overlapping (0.3-0.6 mm on
-real OA knees); :func:`seat` moves the femur down the tibial axis until its cartilage just touches the tibial
-cartilage, then on by the depth at which the contact law carries the joint load (the solver starts
-next to equilibrium, not from a touch that carries nothing), and the patella along its anterior
-axis until it just touches the femur's cartilage or prefemoral sheet; it reports the overlaps it removed.
-
-**Loads.** The tibia fixed; a compressive joint load on the femur down the tibial axis; a
-quadriceps force on the patella from a point up the femoral shaft that belongs to the femur (the
-muscle's pull on its origin is the femur's: the quadriceps is internal to the thigh, and pulls the
-patella into the trochlea without pushing the femur off the tibia); weak springs on the free degrees
-of freedom keep the solve regular before contact closes: the femur's to the ground, the patella's to
-the femur, which it follows through flexion (their forces are part of the equilibrium check).
-
-**The patella above the trochlea.** In extension the patella rests partly on the anterior femur above
-its trochlear cartilage (the prefemoral fat pad); a rigid sheet there, with the femur, carries it
-(:mod:`kneemesh_core.fe.prefemoral`), on by default: without it the patella of OAI 9357383_00m rocked on
-its distal tip on the cartilage's edge and ccx never converged past 6.6 deg.  The patellofemoral
-contact's master is the cartilage and the sheet together (its force the patella's on either), and the
-patella is seated against whichever it meets first.
-
-**Menisci.** Optional rigid surrogates on the plates' rims (:mod:`kneemesh_core.fe.menisci`), on by
-default: without them the lateral condyle leaves the convex lateral plate in flexion.
+The materials, laws, loads and restraints are those of :mod:`.physics`; ``docs/fe-model.md`` describes
+the whole model and why each part is there.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import pyvista as pv
 
-from kneemesh_core.errors import KneeMeshError
-from kneemesh_core.geometry import quad_node_areas, ray_distances
+from kneemesh_core.fe.physics import QUADRICEPS_ORIGIN_MM, QUADRICEPS_POLE_MM, LoadCase, contact_stiffness
+from kneemesh_core.geometry import RAY_BACKOFF_MM, quad_node_areas, ray_distances
+from kneemesh_core.hexmesh.quality import articular_quads
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES
 
-#: Cartilage modulus behind the contact stiffness, MPa (instantaneous compressive modulus of
-#: human knee cartilage is 5-15 MPa; the paper's rigid-cartilage models use linear laws of this kind).
-CARTILAGE_MODULUS_MPA = 10.0
-#: Cartilage Poisson ratio of the elastic-foundation contact law (0.45 in Blankevoort 1991 and Bei &
-#: Fregly 2004: nearly incompressible under a short load).  A thin layer that cannot bulge is 3.79 times
-#: stiffer than E / h; with E / h alone (used until 2026-11-30) the sample's femur sank 0.96 mm into
-#: 4.2 mm of cartilage to carry 1000 N and 4.7 mm by 30 deg of flexion, and the full flexion stopped at
-#: 45 deg; with this law it seats at 0.51 mm and flexes to 90 deg.
-CARTILAGE_POISSON = 0.45
-#: The layer's confined modulus, MPa.
-CONFINED_MODULUS_MPA = CARTILAGE_MODULUS_MPA * (1 - CARTILAGE_POISSON) / ((1 + CARTILAGE_POISSON) * (1 - 2 * CARTILAGE_POISSON))
-#: Blankevoort transition strain.
-TRANSITION_STRAIN = 0.06
 #: The contact pairs: name -> (slave cartilage, master cartilage).
 PAIRS = {"medial": ("medial_tibial_cartilage", "femoral_cartilage"),
          "lateral": ("lateral_tibial_cartilage", "femoral_cartilage"),
          "patellofemoral": ("patellar_cartilage", "femoral_cartilage")}
-#: Stabilising springs on the free degrees of freedom: N/mm and N mm/rad.
-STABILISER_N_MM, STABILISER_NMM_RAD = 5.0, 2000.0
-#: Internal-external rotational restraint of the femur, N mm/rad (60 N m/rad, about 1 N m/deg, the
-#: order of a knee's measured torsional stiffness near neutral).  It stands for the capsule and the
-#: meniscal horns, which the model leaves out; without it the femur of the sample knee rotated 18-41
-#: deg externally by 27-45 deg of flexion and left the lateral plate (the paper's model controlled
-#: this degree of freedom with an applied torque).
-IE_RESTRAINT_NMM_RAD = 60000.0
-#: Anterior-posterior restraint of the femur (deck Y), N/mm, for the secondary AP restraints the
-#: model leaves out (meniscal horns, capsule), the order of a knee's anterior drawer stiffness.
-AP_RESTRAINT_N_MM = 40.0
-#: The patella's tilt and spin restraint relative to the femur (deck Y and Z rotations), N mm/rad:
-#: the retinacula.  With only the weak stabiliser the sample's patella spun 34 deg by 21 deg of flexion
-#: and left the trochlea.
-PATELLA_ROTATION_NMM_RAD = 30000.0
-#: A seating deeper than this share of the tibiofemoral cartilage layers' combined thickness means
-#: the cartilages meet over too small an area to carry the joint load as cartilage: no cartilage
-#: is squeezed by three quarters.  The sample seats at 0.12 (0.51 mm).  Under the softer E / h law used
-#: before, the sample seated at 0.22 and OAI 9357383_00m at 0.29, and a severity-3 phantom whose medial
-#: plate was meshed over 80 % of its label needed 1.28 (4.1 mm) and did not converge.
-MAX_PRELOAD_STRAIN = 0.75
-#: Where the quadriceps pulls from: this far up the femoral shaft (deck Z), mm; and how much shorter
-#: than its initial length it goes slack (its force then stays nearly constant as it lengthens).
-QUADRICEPS_ORIGIN_MM, QUADRICEPS_SLACK_MM = 200.0, 5.0
-
-
-@dataclass(frozen=True)
-class LoadCase:
-    """What the deck asks of the knee."""
-
-    joint_load_n: float = 1000.0
-    quadriceps_n: float = 300.0
-    flexion_deg: float = 90.0
-    max_increment_deg: float = 3.0
-    cartilage: str = "rigid"  # or "deformable" (Abaqus deck)
-    menisci: bool = True  # the meniscus surrogates (fe/menisci.py)
-    prefemoral: bool = True  # the patella's rest above the trochlea (fe/prefemoral.py)
 
 
 @dataclass
@@ -155,7 +76,8 @@ class Model:
     surfaces: dict[str, tuple[str, ...]] = field(default_factory=dict)  # a master of several parts -> its parts
     contact_k: dict[str, float] = field(default_factory=dict)  # pair -> N/mm^3
     quadriceps: Spring | None = None
-    patella_anchor: int = 0  # a femur node where the patella's reference node starts (its stabilisers' other end)
+    # body -> the node of the body it is tied to (physics.RESTRAINTS) where its reference node starts
+    anchors: dict[str, int] = field(default_factory=dict)
     patella_anterior: np.ndarray = field(default_factory=lambda: np.zeros(3))
     tibial_axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))  # deck frame, proximal
     seating: dict = field(default_factory=dict)
@@ -185,83 +107,86 @@ def deck_frame(attachments: dict) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(femur["origin_mm"], float), np.stack([x, np.cross(z, x), z], axis=1)
 
 
-def blankevoort(k: float, slack: float, length: float, points: int = 48) -> list[tuple[float, float]]:
-    """(force N, elongation mm) pairs of a fibre of stiffness ``k`` (N per unit strain), slack length
-    ``slack`` and initial length ``length`` (mm), elongation measured from the initial length.
-
-    ccx holds a nonlinear spring's force constant beyond its table (a fibre past the last pair pulls
-    no harder however far it stretches), so the table runs to a strain of 2 - twice any fibre's
-    rupture - with ``points`` pairs in the quadratic toe and the exact straight lines either side."""
-    et = TRANSITION_STRAIN
-    strain = np.concatenate([[-0.9], np.linspace(0.0, et, points), [2.0]])
-    force = np.where(strain <= 0, 1e-3 * k * strain,
-                     np.where(strain < et, k * strain ** 2 / (2 * et), k * (strain - et / 2)))
-    return [(float(f), float(slack * (1.0 + e) - length)) for f, e in zip(force, strain)]
-
-
-def quadriceps_law(force_n: float, length_mm: float) -> list[tuple[float, float]]:
-    """(force N, elongation mm) of the quadriceps: ``force_n`` at its initial length, +1 N/mm as it
-    lengthens, falling to 0 over :data:`QUADRICEPS_SLACK_MM` of shortening."""
-    return [(-1e-3 * force_n, -length_mm), (0.0, -QUADRICEPS_SLACK_MM), (force_n, 0.0), (force_n + length_mm, length_mm)]
-
-
-def build(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
-    """The model of a meshed job folder (``meshes/``, ``attachments.json``)."""
-    out = Path(out_dir)
-    att_file = out / "attachments.json"
-    if not att_file.exists():
-        raise KneeMeshError("anatomy_missing", "the decks need the attachment sites and frames (attachments.json): "
-                            "run the whole job (bones, cartilage and anatomy) first.")
-    att = json.loads(att_file.read_text())
-    missing = [f"{t}.vtu" for t in CARTILAGES if not (out / "meshes" / f"{t}.vtu").exists()]
-    missing += [f"{b}.vtp" for b in BONES if not (out / "meshes" / f"{b}.vtp").exists()]
-    if missing:
-        raise KneeMeshError("mesh_missing", f"the decks need every bone and cartilage mesh; missing: {', '.join(missing)}.")
-    origin, rot = deck_frame(att)
+def build(bones: dict[str, pv.PolyData], cartilages: dict[str, pv.UnstructuredGrid], attachments: dict,
+          load: LoadCase = LoadCase()) -> Model:
+    """The seated model of a knee: its bone shells (LPS mm, one per bone of ``BONES``), its cartilage
+    hex meshes (LPS mm, one per cartilage of ``CARTILAGES``, with the cell data ``layer`` and point data
+    ``articular`` and ``bone_side`` of :class:`kneemesh_core.hexmesh.CartilageMesh`) and its frames and
+    fibres (``attachments.json``), under ``load``."""
+    origin, rot = deck_frame(attachments)
 
     def to_deck(p) -> np.ndarray:
         return (np.asarray(p, float) - origin) @ rot
 
-    m = Model(load=load, side=att["side"],
+    m = Model(load=load, side=attachments["side"],
               frame={"origin_lps_mm": origin.round(4).tolist(),
                      "axes_lps": {"X_right": rot[:, 0].round(6).tolist(), "Y_anterior": rot[:, 1].round(6).tolist(),
                                   "Z_superior": rot[:, 2].round(6).tolist()}})
-    for bone in BONES:
-        mesh = pv.read(out / "meshes" / f"{bone}.vtp")
-        ids = m.add_nodes(to_deck(mesh.points))
-        m.bone_nodes[bone] = ids
-        m.bone_triangles[bone] = ids[mesh.regular_faces]
-        m.body_nodes[bone] = []
-    element = 1
+    frames = attachments["frames"]
+    _add_bones(m, {b: to_deck(bones[b].points) for b in BONES}, {b: bones[b].regular_faces for b in BONES})
     for tissue in CARTILAGES:
-        grid = pv.read(out / "meshes" / f"{tissue}.vtu")
-        layer = np.asarray(grid.cell_data["layer"])
-        top = int(layer.max())
-        keep = layer == top if load.cartilage == "rigid" else np.ones(len(layer), bool)
-        conn = np.asarray(grid.cells_dict[pv.CellType.HEXAHEDRON])[keep]
-        used = np.unique(conn)
-        ids = m.add_nodes(to_deck(grid.points[used]))
-        lookup = np.zeros(grid.n_points, int)
-        lookup[used] = ids
-        elements = np.arange(element, element + len(conn))
-        element += len(conn)
-        kept_layer = layer[keep]
-        pts = np.asarray(grid.points)
-        art_nodes = np.asarray(grid.point_data["articular"], bool)
-        bone_nodes = np.asarray(grid.point_data["bone_side"], bool)
-        thick = np.linalg.norm(pts[art_nodes] - pts[bone_nodes], axis=1)  # the columns: nodes stacked layer by layer
-        m.parts[tissue] = Part(tissue, BONE_OF[tissue], elements, lookup[conn], elements[kept_layer == top],
-                               elements[kept_layer == (top if load.cartilage == "rigid" else 0)], float(np.median(thick)))
-        m.body_nodes[BONE_OF[tissue]].extend(ids.tolist())
+        _add_cartilage(m, tissue, cartilages[tissue], to_deck)
     for name, (slave, master) in PAIRS.items():
-        m.contact_k[name] = round(CONFINED_MODULUS_MPA / (m.parts[slave].thickness_mm + m.parts[master].thickness_mm), 4)
+        m.contact_k[name] = contact_stiffness(m.parts[slave].thickness_mm, m.parts[master].thickness_mm)
     # reference nodes: femur and patella at their frames' origins, tibia at the tibial frame's
     for body in BONES:
-        m.ref[body] = int(m.add_nodes(to_deck(np.asarray(att["frames"][body]["origin_mm"])[None]))[0])
-    m.patella_anchor = int(m.add_nodes(m.nodes[m.ref["patella"]][None])[0])
-    m.body_nodes["femur"].append(m.patella_anchor)
-    # ligaments: one node per fibre end, moving with the body of its bone
-    for fibre in att["fibres"]:
+        m.ref[body] = int(m.add_nodes(to_deck(np.asarray(frames[body]["origin_mm"])[None]))[0])
+    m.anchors["patella"] = int(m.add_nodes(m.nodes[m.ref["patella"]][None])[0])
+    m.body_nodes["femur"].append(m.anchors["patella"])
+    _add_ligaments(m, attachments["fibres"], to_deck)
+    _add_quadriceps(m, to_deck(np.asarray(frames["patella"]["origin_mm"])
+                               + QUADRICEPS_POLE_MM * np.asarray(frames["patella"]["axes"]["proximal"])))
+    m.patella_anterior = np.asarray(frames["patella"]["axes"]["anterior"]) @ rot
+    m.tibial_axis = np.asarray(frames["tibia"]["axes"]["proximal"], float) @ rot
+    femur = seat_femur(m)
+    if load.prefemoral:
+        add_prefemoral(m)
+    patella = seat_patella(m)
+    _measure_springs(m)
+    m.seating = _seating_record(m, femur, patella)
+    if load.menisci:
+        add_menisci(m, load.flexion_deg)
+    return m
+
+
+def _add_bones(m: Model, points: dict[str, np.ndarray], triangles: dict[str, np.ndarray]) -> None:
+    """Each bone's shell: its nodes (P, 3) in the deck frame and triangles (T, 3) into them."""
+    for bone in BONES:
+        ids = m.add_nodes(points[bone])
+        m.bone_nodes[bone] = ids
+        m.bone_triangles[bone] = ids[triangles[bone]]
+        m.body_nodes[bone] = []
+
+
+def _add_cartilage(m: Model, tissue: str, grid: pv.UnstructuredGrid, to_deck) -> None:
+    """One cartilage's hexahedra, with its bone's body: rigid cartilage keeps only the articular layer
+    (deeper layers move with the bone and change nothing; its bone side is then that layer's deep
+    face), deformable cartilage every layer.  Its thickness for the contact law is the median length
+    of its columns (their nodes are stacked layer by layer)."""
+    layer = np.asarray(grid.cell_data["layer"])
+    top = int(layer.max())
+    rigid = m.load.cartilage == "rigid"
+    keep = layer == top if rigid else np.ones(len(layer), bool)
+    conn = np.asarray(grid.cells_dict[pv.CellType.HEXAHEDRON])[keep]
+    used = np.unique(conn)
+    ids = m.add_nodes(to_deck(grid.points[used]))
+    lookup = np.zeros(grid.n_points, int)
+    lookup[used] = ids
+    elements = np.arange(m.next_element, m.next_element + len(conn))
+    m.next_element += len(conn)
+    kept_layer = layer[keep]
+    pts = np.asarray(grid.points)
+    thick = np.linalg.norm(pts[np.asarray(grid.point_data["articular"], bool)]
+                           - pts[np.asarray(grid.point_data["bone_side"], bool)], axis=1)
+    m.parts[tissue] = Part(tissue, BONE_OF[tissue], elements, lookup[conn], elements[kept_layer == top],
+                           elements[kept_layer == (top if rigid else 0)], float(np.median(thick)))
+    m.body_nodes[BONE_OF[tissue]].extend(ids.tolist())
+
+
+def _add_ligaments(m: Model, fibres: list[dict], to_deck) -> None:
+    """One spring per fibre of ``attachments.json`` with both ends placed, a node at each end moving
+    with the body of its bone."""
+    for fibre in fibres:
         ends = fibre["ends"]
         if any(e["lps_mm"] is None for e in ends):
             continue
@@ -270,24 +195,28 @@ def build(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
             m.body_nodes[e["bone"]].append(n)
         beyond = float(fibre.get("path_beyond_mm", 0.0))
         length = float(np.linalg.norm(m.nodes[a] - m.nodes[b])) + beyond
-        m.springs.append(Spring(fibre["name"], fibre["bundle"], element, (a, b), fibre["stiffness_n"],
+        m.springs.append(Spring(fibre["name"], fibre["bundle"], m.next_element, (a, b), fibre["stiffness_n"],
                                 fibre["slack_length_mm"], length, beyond))
-        element += 1
-    # the quadriceps: from the patella's proximal pole to a point up the femoral shaft, on the femur
-    patella = att["frames"]["patella"]
-    pole = to_deck(np.asarray(patella["origin_mm"]) + 15.0 * np.asarray(patella["axes"]["proximal"]))
+        m.next_element += 1
+
+
+def _add_quadriceps(m: Model, pole: np.ndarray) -> None:
+    """The quadriceps: from the patella's proximal ``pole`` (3,), deck frame, to its origin up the
+    femoral shaft, which moves with the femur."""
     shaft = np.array([0.0, 0.0, QUADRICEPS_ORIGIN_MM])
     a, b = (int(i) for i in m.add_nodes(np.stack([pole, shaft])))
     m.body_nodes["patella"].append(a)
     m.body_nodes["femur"].append(b)
-    m.quadriceps = Spring("QUADRICEPS", "QUAD", element, (a, b), 0.0, 0.0, float(np.linalg.norm(pole - shaft)))
-    m.next_element = element + 1
-    m.patella_anterior = np.asarray(patella["axes"]["anterior"]) @ rot
-    m.tibial_axis = np.asarray(att["frames"]["tibia"]["axes"]["proximal"], float) @ rot
-    m.seating = seat(m)
-    if load.menisci:
-        add_menisci(m, load.flexion_deg)
-    return m
+    m.quadriceps = Spring("QUADRICEPS", "QUAD", m.next_element, (a, b), 0.0, 0.0, float(np.linalg.norm(pole - shaft)))
+    m.next_element += 1
+
+
+def _measure_springs(m: Model) -> None:
+    """Every spring's initial length in the seated pose."""
+    for s in m.springs:
+        s.length_mm = float(np.linalg.norm(m.nodes[s.nodes[0]] - m.nodes[s.nodes[1]])) + s.beyond_mm
+    q = m.quadriceps
+    q.length_mm = float(np.linalg.norm(m.nodes[q.nodes[0]] - m.nodes[q.nodes[1]]))
 
 
 def _surface(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
@@ -315,12 +244,8 @@ def add_menisci(m: Model, flexion_deg: float) -> None:
         nodes, hexes = wedge(plates[side], femoral, m.tibial_axis, plates[other][0].mean(0))
         if not len(hexes):
             continue
-        ids = m.add_nodes(nodes)
-        elements = np.arange(m.next_element, m.next_element + len(hexes))
-        m.next_element += len(hexes)
         name = f"{side}_meniscus"
-        m.parts[name] = Part(name, "tibia", elements, ids[hexes], elements, elements, LAYER_MM)
-        m.body_nodes["tibia"].extend(ids.tolist())
+        _add_surrogate(m, name, "tibia", nodes, hexes, LAYER_MM)
         m.pairs[name] = (name, "femoral_cartilage")
         m.contact_k[name] = m.contact_k[side]
 
@@ -339,26 +264,32 @@ def add_prefemoral(m: Model) -> None:
                          m.parts["femoral_cartilage"].thickness_mm)
     if not len(hexes):
         return
-    ids = m.add_nodes(nodes)
-    elements = np.arange(m.next_element, m.next_element + len(hexes))
-    m.next_element += len(hexes)
-    m.parts["prefemoral"] = Part("prefemoral", "femur", elements, ids[hexes], elements, elements, LAYER_MM)
-    m.body_nodes["femur"].extend(ids.tolist())
+    _add_surrogate(m, "prefemoral", "femur", nodes, hexes, LAYER_MM)
     m.surfaces["patellar_track"] = ("femoral_cartilage", "prefemoral")
     m.pairs["patellofemoral"] = ("patellar_cartilage", "patellar_track")
 
 
+def _add_surrogate(m: Model, name: str, body: str, nodes: np.ndarray, hexes: np.ndarray, layer_mm: float) -> None:
+    """A rigid surrogate (a meniscus, the prefemoral sheet) of hexahedra (E, 8) on ``nodes`` (N, 3),
+    deck frame, moving with ``body``; its upper faces (nodes 5-8) are its contact surface."""
+    ids = m.add_nodes(nodes)
+    elements = np.arange(m.next_element, m.next_element + len(hexes))
+    m.next_element += len(hexes)
+    m.parts[name] = Part(name, body, elements, ids[hexes], elements, elements, layer_mm)
+    m.body_nodes[body].extend(ids.tolist())
+
+
 def _articular_faces(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
-    """The articular (S2) faces of a cartilage (or meniscus surrogate) as quads (Q, 4) of global node ids, and those ids."""
+    """The articular (S2) faces of a cartilage (or surrogate) as quads (Q, 4) of global node ids, and those ids."""
     part = m.parts[tissue]
-    quads = part.connectivity[np.searchsorted(part.elements, part.articular)][:, [4, 7, 6, 5]]
+    quads = articular_quads(part.connectivity[np.searchsorted(part.elements, part.articular)])
     return quads, np.unique(quads)
 
 
 def gaps(m: Model, slave: str, master: str, direction: np.ndarray) -> np.ndarray:
     """Distance (mm) from each articular node of ``slave`` along unit ``direction`` to the articular
     surface of ``master``: negative where the two overlap, NaN where the ray misses it."""
-    back = 20.0  # rays start this far behind each node, so an overlap is found too
+    back = RAY_BACKOFF_MM  # rays start behind each node, so an overlap is found too
     return ray_distances(_surface(m, slave)[0] - back * direction, direction, *_surface(m, master)) - back
 
 
@@ -391,41 +322,46 @@ def preload_depth(gaps_mm: list[np.ndarray], areas_mm2: list[np.ndarray], k_n_mm
     return 0.5 * (lo + hi)
 
 
-def seat(m: Model) -> dict:
-    """Seat the bones before any load: the femur moves down the tibial axis until its cartilage just touches the
-    tibial cartilage (down across a gap, up out of an overlap) and then on by the depth at which the
-    contact carries the joint load (:func:`preload_depth`), so that the solver starts next to
-    equilibrium; then the patella along its anterior axis until it just touches the femoral
-    cartilage or the prefemoral sheet (:func:`add_prefemoral`, built once the femur is seated).  The
-    overlaps of the image pose are reported."""
+def seat_femur(m: Model) -> dict:
+    """Seat the femur before any load: down the tibial axis until its cartilage just touches the tibial
+    cartilage (down across a gap, up out of an overlap), then on by the depth at which the contact
+    carries the joint load (:func:`preload_depth`), so that the solver starts next to equilibrium, not
+    from a touch that carries nothing.  Returns the gaps of the image pose per plate, the shift and the
+    depth."""
     z = m.tibial_axis
     before = {pair: gaps(m, PAIRS[pair][0], PAIRS[pair][1], z) for pair in ("medial", "lateral")}
     g = np.concatenate(list(before.values()))
     touch = -float(np.nanmin(g)) if np.isfinite(g).any() else 0.0
     depth = preload_depth([v + touch for v in before.values()],
                           [_node_areas(m, PAIRS[p][0]) for p in before], [m.contact_k[p] for p in before], m.load.joint_load_n)
-    femur_shift = touch - depth
-    _move(m, "femur", femur_shift * z)
+    shift = touch - depth
+    _move(m, "femur", shift * z)
+    return {"gaps": before, "shift_mm": shift, "depth_mm": depth}
+
+
+def seat_patella(m: Model) -> dict:
+    """Seat the patella along its anterior axis until it just touches the femoral cartilage or the
+    prefemoral sheet (:func:`add_prefemoral`), whichever it meets first.  Returns its gaps to them,
+    measured after the femur was seated, and the shift."""
     toward = -m.patella_anterior  # the patella's articular side faces posterior, towards the trochlea
-    if m.load.prefemoral:
-        add_prefemoral(m)
     pf = np.fmin.reduce([gaps(m, "patellar_cartilage", master, toward)
                          for master in ("femoral_cartilage", "prefemoral") if master in m.parts])
-    patella_shift = float(np.nanmin(pf)) if np.isfinite(pf).any() else 0.0
-    _move(m, "patella", patella_shift * toward)
-    pf_before = pf  # measured after the femur was seated, along the patella's axis
-    for s in m.springs:
-        s.length_mm = float(np.linalg.norm(m.nodes[s.nodes[0]] - m.nodes[s.nodes[1]])) + s.beyond_mm
-    q = m.quadriceps
-    q.length_mm = float(np.linalg.norm(m.nodes[q.nodes[0]] - m.nodes[q.nodes[1]]))
+    shift = float(np.nanmin(pf)) if np.isfinite(pf).any() else 0.0
+    _move(m, "patella", shift * toward)
+    return {"gaps": pf, "shift_mm": shift}
 
+
+def _seating_record(m: Model, femur: dict, patella: dict) -> dict:
+    """What the seating did, for the report: the overlaps of the image pose it removed, the shifts, the
+    preload depth and its share of the tibiofemoral layers' thickness."""
     def overlap(v: np.ndarray) -> float:
         return round(float(max(0.0, -np.nanmin(v))) if np.isfinite(v).any() else 0.0, 3)
 
-    return {"initial_overlap_mm": {"medial": overlap(before["medial"]), "lateral": overlap(before["lateral"]),
-                                   "patellofemoral": overlap(pf_before)},
-            "initial_overlap_nodes": {k: int((v < 0).sum()) for k, v in (*before.items(), ("patellofemoral", pf_before))},
-            "femur_shift_mm": round(femur_shift, 3), "preload_depth_mm": round(depth, 3),
+    before = {**femur["gaps"], "patellofemoral": patella["gaps"]}
+    depth = femur["depth_mm"]
+    return {"initial_overlap_mm": {k: overlap(v) for k, v in before.items()},
+            "initial_overlap_nodes": {k: int((v < 0).sum()) for k, v in before.items()},
+            "femur_shift_mm": round(femur["shift_mm"], 3), "preload_depth_mm": round(depth, 3),
             "preload_strain": round(depth / float(np.mean([m.parts[s].thickness_mm + m.parts[f].thickness_mm
                                                            for s, f in (PAIRS["medial"], PAIRS["lateral"])])), 3),
-            "patella_shift_mm": round(patella_shift, 3)}
+            "patella_shift_mm": round(patella["shift_mm"], 3)}

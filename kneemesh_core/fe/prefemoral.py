@@ -7,7 +7,7 @@ flexes.  A model with cartilage contact only gives that part of the patella noth
 9357383_00m the patellar cartilage spans 13.7-46.7 mm up the femoral shaft and the trochlear cartilage
 ends at 18.7 mm, so the patella touched the femur with its distal tip alone, rocked on the cartilage's
 edge, and ccx cut its increments back for 25 min at 6.6 deg (115 contact elements switching on and off
-at every iteration; ``bench/RESULTS.md``, session 15).
+at every iteration).
 
 What.  A height field seen from the patella: rays along the patella's posterior axis find the femur's
 bone and its cartilage under a grid that covers the patella's outline (and :data:`MARGIN_MM` round it);
@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
-from kneemesh_core.geometry import grid_quads, hex_sheet, plane_basis, ray_distances
+from kneemesh_core.geometry import RAY_BACKOFF_MM, grid_quads, hex_sheet, plane_basis, ray_distances
 
 #: Grid spacing, mm.  ccx's contact cost grows with the faces whether they touch or not: a 1 mm sheet
 #: (1678 faces, then in a pair of its own) took the sample's smoke run from 55 to 76 s.
@@ -58,7 +58,7 @@ def sheet(patella: tuple[np.ndarray, np.ndarray], toward: np.ndarray, bone: tupl
     lo, hi = uv.min(0) - MARGIN_MM, uv.max(0) + MARGIN_MM
     u, v = (np.arange(a, b + SPACING_MM, SPACING_MM) for a, b in zip(lo, hi))
     grid = np.stack(np.meshgrid(u, v, indexing="ij"), axis=-1)  # (I, J, 2)
-    start = float((patella[0] @ toward).min()) - 20.0  # in front of the patella, so that no surface is missed
+    start = float((patella[0] @ toward).min()) - RAY_BACKOFF_MM  # in front of the patella: no surface missed
     origins = grid.reshape(-1, 2) @ basis + start * toward
     to_bone, to_cartilage, to_patella = (ray_distances(origins, toward, *surface).reshape(grid.shape[:2])
                                          for surface in (bone, cartilage, patella))

@@ -9,14 +9,15 @@ package reads ccx 2.20's .dat tables (ccx2paraview reads the .frd only).
 
 from __future__ import annotations
 
-import json
 import re
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
-from kneemesh_core.fe.model import MAX_PRELOAD_STRAIN, TRANSITION_STRAIN
+from kneemesh_core.fe.physics import (MAX_BALANCE_ERROR, MAX_PLATE_PEAK_MPA, MAX_PRELOAD_STRAIN, MIN_PLATE_SHARE,
+                                      MIN_PLATES_AREA_MM2, ligament_force)
+from kneemesh_core.io.files import atomic_write_json
 
 RESULTS_FILE, CONTACT_FIGURE = "results.json", "contact.png"
 _STATS = re.compile(r"^\s*statistics for slave set (\S+), master set (\S+) and time\s+(\S+)")
@@ -82,13 +83,14 @@ def parse_dat(path: Path, stopped: bool = False) -> dict:
     return {"contact": dict(contact), "stress": dict(stress), "nodes": nodes}
 
 
-def fibre_force(k: float, slack: float, length: float) -> float:
-    """Blankevoort force (N) of a fibre of stiffness ``k`` at ``length`` (mm)."""
-    e = length / slack - 1.0
-    if e <= 0:
-        return 0.0
-    et = TRANSITION_STRAIN
-    return float(k * e * e / (2 * et) if e < et else k * (e - et / 2))
+#: The step time at which the seating step ends with the whole joint load on (ccx's total time): the
+#: increments from there on are loaded; those before are ccx's cut-back seating increments, not trusted.
+LOADED_AT = 1.0
+
+
+def loaded(increments: list[dict]) -> list[dict]:
+    """The increments of a run with the whole joint load on (``time`` >= :data:`LOADED_AT`)."""
+    return [r for r in increments if r["time"] >= LOADED_AT]
 
 
 def summarise(dat: dict, meta: dict) -> list[dict]:
@@ -120,7 +122,8 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
             for f in meta["fibres"]:
                 a, b = f["nodes"]
                 pa, pb = np.asarray(f["start"][0]) + u[a], np.asarray(f["start"][1]) + u[b]
-                force = fibre_force(f["k"], f["slack"], float(np.linalg.norm(pa - pb)) + f.get("beyond", 0.0))
+                length = float(np.linalg.norm(pa - pb)) + f.get("beyond", 0.0)
+                force = float(ligament_force(f["k"], length / f["slack"] - 1.0))
                 bundles[f["bundle"]] += force
                 if f["femur_end"] is not None and force > 0:  # pulls the femur towards the other end
                     fe, other = (pa, pb) if f["femur_end"] == 0 else (pb, pa)
@@ -132,17 +135,14 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
             femur_force += float(np.interp(stretch, law[:, 1], law[:, 0])) * (pa - pb) / np.linalg.norm(pa - pb)
         if t in refs:
             femur_force -= np.asarray(meta["femur_springs_n_mm"]) * refs[t][meta["ref"]["femur"]]
-            if t in ends:  # the patella's stabilisers pull its anchor on the femur
-                femur_force += meta["stabiliser_n_mm"] * (refs[t][meta["ref"]["patella"]] - ends[t][meta["patella_anchor"]])
+            if t in ends:  # the patella's springs pull their anchor on the femur
+                femur_force += np.asarray(meta["patella_springs_n_mm"]) * (refs[t][meta["ref"]["patella"]]
+                                                                           - ends[t][meta["patella_anchor"]])
         row["ligaments_n"] = {b: round(v, 2) for b, v in sorted(bundles.items())}
         row["femur_force_balance_n"] = np.round(femur_force, 3).tolist()
         row["balance_error"] = round(float(np.linalg.norm(femur_force) / meta["joint_load_n"]), 4)
         out.append(row)
     return out
-
-
-#: An increment is trusted only if the femur's forces balance within this fraction of the joint load ...
-MAX_BALANCE_ERROR = 0.05
 
 
 #: The contacts an increment reports (the surrogates' where the model has them): the tibiofemoral ones
@@ -157,50 +157,43 @@ def tibiofemoral_n(row: dict) -> float:
     return sum(row[k]["force_n"] for k in TIBIOFEMORAL if k in row)
 
 
+def physical(increment: dict) -> bool:
+    """Whether a loaded increment is physics: ccx can 'converge' on an increment whose femur has lost
+    the tibia (no tibiofemoral contact under the joint load) and whose forces do not balance."""
+    return increment["balance_error"] <= MAX_BALANCE_ERROR and tibiofemoral_n(increment) > 0
+
+
 def first_invalid(increments: list[dict]) -> str | None:
-    """Why the run stops being physics, or None: ccx can 'converge' on an increment whose femur has
-    lost the tibia (no tibiofemoral contact under the joint load) and whose forces do not balance."""
-    for r in increments:
-        if r["time"] < 1.0:
-            continue  # only the end of the seating step is trusted (ccx's cut-back increments are not)
-        tf = tibiofemoral_n(r)
-        if r["balance_error"] > MAX_BALANCE_ERROR or tf <= 0:
+    """Why the run stops being physics (:func:`physical`), or None.  Only the loaded increments are
+    judged: ccx's cut-back increments of the seating step are not trusted."""
+    for r in loaded(increments):
+        if not physical(r):
+            tf = tibiofemoral_n(r)
             return (f"at {r['flexion_deg']:.1f} deg of flexion the femur's forces no longer balance the joint load "
                     f"(error {r['balance_error']:.1%}, tibiofemoral contact {tf:.0f} N)"
                     + (": it lost the tibia" if tf <= 0 else ""))
     return None
 
 
-#: A completed run is physiology only within these (the targets of a knee under the 1000 N joint
-#: load: cadaver and model studies put tibiofemoral peaks at a few to 15-20 MPa over hundreds of
-#: mm^2, both compartments loaded in extension).  Tibial plates only: the meniscus surrogates are
-#: rigid rings whose edge concentrates pressure by construction.  The plates' peak over the run ...
-MAX_PLATE_PEAK_MPA = 20.0
-#: ... each plate's share of the joint load in extension (the end of seating) ...
-MIN_PLATE_SHARE = 0.1
-#: ... and the plates' contact area in extension, mm^2.
-MIN_PLATES_AREA_MM2 = 100.0
-
-
 def plates_peak(increments: list[dict]) -> tuple[float, str, float]:
-    """The tibial plates' peak contact pressure over a run's loaded increments (``time`` >= 1): (MPa,
+    """The tibial plates' peak contact pressure over a run's loaded increments (:func:`loaded`): (MPa,
     plate, flexion deg); (0, "", 0) before the joint load is on."""
-    return max(((r[k]["peak_pressure_mpa"], k, r["flexion_deg"] or 0.0) for r in increments if r["time"] >= 1.0
+    return max(((r[k]["peak_pressure_mpa"], k, r["flexion_deg"] or 0.0) for r in loaded(increments)
                 for k in ("medial", "lateral")), default=(0.0, "", 0.0))
 
 
 def physiology(increments: list[dict], load_n: float) -> list[str]:
-    """Where a run's loaded increments (``time`` >= 1) leave physiology, one reason each; empty when
+    """Where a run's loaded increments (:func:`loaded`) leave physiology, one reason each; empty when
     within every target."""
-    loaded = [r for r in increments if r["time"] >= 1.0]
-    if not loaded:
+    on = loaded(increments)
+    if not on:
         return []
     out = []
-    peak, side, at = plates_peak(loaded)
+    peak, side, at = plates_peak(on)
     if peak > MAX_PLATE_PEAK_MPA:
         out.append(f"the tibial plates' peak contact pressure reaches {peak:.1f} MPa ({side}, at {at:.0f} deg; "
                    f"physiological: below {MAX_PLATE_PEAK_MPA:g} MPa)")
-    first = loaded[0]
+    first = on[0]
     for k in ("medial", "lateral"):
         if first[k]["force_n"] < MIN_PLATE_SHARE * load_n:
             out.append(f"in extension the {k} plate carries {first[k]['force_n']:.0f} N of the {load_n:g} N joint load "
@@ -218,11 +211,8 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
     trusted increments meet the targets of :func:`physiology` (``physiology_reasons`` when not)."""
     increments = summarise(parse_dat(dat_path, stopped=not run.completed), meta) if dat_path.exists() else []
     invalid = first_invalid(increments)
-    trusted = [r for r in increments if r["time"] < 1.0 or (r["balance_error"] <= MAX_BALANCE_ERROR
-                                                              and tibiofemoral_n(r) > 0)]
-    if invalid:
-        cut = next(i for i, r in enumerate(increments) if r["time"] >= 1.0 and r not in trusted)
-        trusted = increments[:cut]
+    cut = next((i for i, r in enumerate(increments) if r["time"] >= LOADED_AT and not physical(r)), len(increments))
+    trusted = increments[:cut]
     reached = max((r["flexion_deg"] or 0.0 for r in trusted), default=0.0)
     completed = run.completed and invalid is None
     reason = run.reason or invalid
@@ -238,7 +228,7 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
               "applied_load_n": meta["joint_load_n"], "quadriceps_n": meta["quadriceps_n"],
               "target_flexion_deg": meta["flexion_deg"], "reached_flexion_deg": round(reached, 3),
               "contact_stiffness_n_mm3": meta["contact_k"], "seating": meta["seating"], "increments": increments}
-    (folder / RESULTS_FILE).write_text(json.dumps(result, indent=1))
+    atomic_write_json(folder / RESULTS_FILE, result, indent=1)
     if increments:
         plot(result, folder / CONTACT_FIGURE)
     return result
@@ -250,7 +240,7 @@ def plot(result: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    inc = [r for r in result["increments"] if r["flexion_deg"] is not None and r["time"] >= 1.0]  # the whole load on
+    inc = [r for r in loaded(result["increments"]) if r["flexion_deg"] is not None]
     x = [r["flexion_deg"] for r in inc]
     fig, axs = plt.subplots(2, 2, figsize=(10, 7), dpi=80)
     for name, style in zip(CONTACTS, ("-o", "-s", ":o", ":s", "-^")):

@@ -1,4 +1,5 @@
-"""A simulation of a job's knee: the CalculiX wrapper for the flexion asked for, the run, the results.
+"""A job folder's decks and simulations: the model read from the job's meshes and anatomy, the decks
+written, CalculiX run for the flexion asked for, and the report's entry of the run.
 
 ``full`` runs the job's own ``fe/knee_ccx.inp`` (0-90 deg in 3 deg increments); ``smoke`` writes a
 wrapper over the same shared model to 15 deg in two increments, in ``fe/smoke/``, and runs that.
@@ -9,28 +10,52 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pyvista as pv
+
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.fe import deck
-from kneemesh_core.fe.model import LoadCase, build
-from kneemesh_core.fe.results import RESULTS_FILE, write_results
+from kneemesh_core.fe.model import Model, build
+from kneemesh_core.fe.physics import SMOKE_FLEXION_DEG, SMOKE_INCREMENT_DEG, LoadCase
+from kneemesh_core.fe.results import CONTACT_FIGURE, CONTACTS, RESULTS_FILE, write_results
 from kneemesh_core.fe.simulate import run_ccx
+from kneemesh_core.tissues import BONES, CARTILAGES
 
 FE_DIR, SMOKE_DIR = "fe", "smoke"
 #: Where a job's results lie, relative to the job folder: the full flexion first, then the smoke run.
 RESULT_FILES = (f"{FE_DIR}/{RESULTS_FILE}", f"{FE_DIR}/{SMOKE_DIR}/{RESULTS_FILE}")
-#: The smoke run: flexion and increment, deg (two increments: the sample's run took 53 s of CPU in three
-#: of 5 deg, 43 s in two, with the same contact at 15 deg within 3 % of force).
-SMOKE = (15.0, 7.5)
+
+
+def read_model(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
+    """The model (:func:`kneemesh_core.fe.model.build`) of a meshed job folder: ``meshes/`` and
+    ``attachments.json``; a clear error where the job has not written them."""
+    out = Path(out_dir)
+    att_file = out / "attachments.json"
+    if not att_file.exists():
+        raise KneeMeshError("anatomy_missing", "the decks need the attachment sites and frames (attachments.json): "
+                            "run the whole job (bones, cartilage and anatomy) first.")
+    missing = [f"{t}.vtu" for t in CARTILAGES if not (out / "meshes" / f"{t}.vtu").exists()]
+    missing += [f"{b}.vtp" for b in BONES if not (out / "meshes" / f"{b}.vtp").exists()]
+    if missing:
+        raise KneeMeshError("mesh_missing", f"the decks need every bone and cartilage mesh; missing: {', '.join(missing)}.")
+    return build({b: pv.read(out / "meshes" / f"{b}.vtp") for b in BONES},
+                 {t: pv.read(out / "meshes" / f"{t}.vtu") for t in CARTILAGES},
+                 json.loads(att_file.read_text()), load)
 
 
 def write_decks(out_dir: Path, load: LoadCase = LoadCase()) -> dict:
     """The decks of a meshed job in ``out_dir/fe``; returns what the report says of them."""
-    m = build(out_dir, load)
+    m = read_model(out_dir, load)
     files = deck.write(m, Path(out_dir) / FE_DIR)
     return {"files": [f"{FE_DIR}/{f.name}" for f in files], "nodes": len(m.nodes),
             "c3d8": int(sum(len(p.elements) for p in m.parts.values())), "springs": len(m.springs),
             "contact_stiffness_n_mm3": m.contact_k, "seating": m.seating, "cartilage": load.cartilage,
             "flexion_deg": load.flexion_deg, "joint_load_n": load.joint_load_n}
+
+
+def run_folder(smoke: bool = False, flexion_deg: float | None = None) -> str:
+    """Where a run's deck and results lie, relative to the job folder: ``fe`` (the job's own flexion),
+    ``fe/smoke`` or ``fe/flexion_<deg>``."""
+    return f"{FE_DIR}/{SMOKE_DIR}" if smoke else FE_DIR if flexion_deg is None else f"{FE_DIR}/flexion_{flexion_deg:g}"
 
 
 def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = False, timeout_s: float = 1800.0,
@@ -40,15 +65,32 @@ def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = Fals
     fe = Path(out_dir) / FE_DIR
     m = None
     if not (fe / deck.MODEL_FILE).exists():
-        m = build(out_dir, load)
+        m = read_model(out_dir, load)
         deck.write(m, fe)
-    folder = fe
-    if smoke or flexion_deg is not None:
-        flex, step = SMOKE if smoke else (flexion_deg, load.max_increment_deg)
-        folder = fe / (SMOKE_DIR if smoke else f"flexion_{flex:g}")
-        deck.write(m or build(out_dir, load), folder, flex, step, include=f"../{deck.MODEL_FILE}")
+    folder = Path(out_dir) / run_folder(smoke, flexion_deg)
+    if folder != fe:
+        flex, step = (SMOKE_FLEXION_DEG, SMOKE_INCREMENT_DEG) if smoke else (flexion_deg, load.max_increment_deg)
+        deck.write(m or read_model(out_dir, load), folder, flex, step, include=f"../{deck.MODEL_FILE}")
     meta_file = folder / deck.META_FILE
     if not meta_file.exists():
         raise KneeMeshError("deck_missing", f"{meta_file} is missing: write the decks again (kneemesh mesh).")
     run = run_ccx(folder, Path(deck.CCX_FILE).stem, timeout_s)
     return write_results(folder, run, json.loads(meta_file.read_text()), folder / "knee_ccx.dat")
+
+
+def simulation_entry(results: dict, kind: str, folder: str) -> dict:
+    """The report's ``simulation`` entry of a run's ``results`` (:func:`simulate`): ``kind`` smoke, full or
+    a flexion, the results lying in ``folder`` (relative to the job folder).  A run stopped part-way is
+    ``review`` with the flexion it reached (its increments are results), one that reached none is
+    ``failed``, one completed outside physiology ``review``."""
+    r = results
+    last = r["increments"][-1] if r["increments"] else {}
+    reasons = ([] if r["completed"] else [f"stopped at {r['reached_flexion_deg']:g} of {r['target_flexion_deg']:g} deg: "
+                                          f"{r['reason']}"]) + r["physiology_reasons"]
+    status = "failed" if not r["completed"] and r["reached_flexion_deg"] <= 0 else "review" if reasons else "ok"
+    return {"status": status, "reasons": reasons, "kind": kind, "completed": r["completed"],
+            "physiological": r["physiological"], "reason": r["reason"], "solver": r["solver"],
+            "solver_seconds": r["seconds"], "reached_flexion_deg": r["reached_flexion_deg"],
+            "target_flexion_deg": r["target_flexion_deg"],
+            "final": {k: v for k, v in last.items() if k in ("balance_error", *CONTACTS)},
+            "files": [f"{folder}/{f}" for f in (RESULTS_FILE, CONTACT_FIGURE)]}

@@ -27,7 +27,7 @@ from kneemesh_core.hexmesh.quadmesh import quad_mesh
 from kneemesh_core.hexmesh.quality import boundary_crossings, crossing_nodes, hex_quality, passes_gate, summary, to_grid, usable
 from kneemesh_core.hexmesh.rays import height_field
 from kneemesh_core.hexmesh.targets import (BLEND_FRAC_GOOD, BLEND_MIN_SCALED_JACOBIAN, EDGE_RATIO_AIM, FUSED_TOL_MM,
-                                           MAX_ATTEMPT_VOLUME_ERROR, MAX_EDGE_RATIO, MIN_SCALED_JACOBIAN)
+                                           MAX_ATTEMPT_VOLUME_ERROR, MAX_EDGE_RATIO, MAX_FLOOR_EXCESS, MIN_SCALED_JACOBIAN)
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.surfaces.masks import CleanMask, clean_mask, label_box
 from kneemesh_core.surfaces.metrics import signed_distance
@@ -98,13 +98,6 @@ NARROWING = frozenset({"rim_inside_trimmed", "trimmed_rim", "deeper_inset", "ste
 #: Fallbacks that widen the footprint: tried only then, when an attempt is within the gate and
 #: short of coverage or volume (they rarely help an attempt that is outside the gate).
 WIDENING = frozenset({"rim_to_wall", "thin_rim_to_wall"})
-#: Every column keeps a floor of layers x element / EDGE_RATIO_AIM (no element beyond the edge ratio), so
-#: cartilage thinner than that is meshed too thick.  Where the floor would add more than this fraction to the
-#: cartilage's volume (:func:`floor_excess`), the fallbacks with smaller elements, whose floor is lower, go
-#: first.  Tuned on phantom seeds 31600-31799: of their 21 cartilages above it, none met every target with
-#: full-size elements and 14 met them with smaller elements after 8-12 attempts (22-40 s for a femoral
-#: cartilage); 752 of the 779 under it met them with full-size elements.
-MAX_FLOOR_EXCESS = 0.03
 
 
 @dataclasses.dataclass
@@ -291,6 +284,89 @@ def _attempt(name: str, labels: sitk.Image, tissue: str, opts: HexOptions, h: fl
     return Attempt(name, hm, q, s, fidelity(hm, surface, cm.label_ml), domain, cm, surface, fp, int((finer > 0).sum()))
 
 
+class _Chain:
+    """The attempts at one cartilage: each is recorded in ``tried`` and kept as ``best`` when it ranks
+    higher (:meth:`Attempt.score`); the steps they share are computed once (``cache``)."""
+
+    def __init__(self, labels: sitk.Image, tissue: str, opts: HexOptions):
+        self.labels, self.tissue, self.opts = labels, tissue, opts
+        self.tried: list[str] = []
+        self.best: Attempt | None = None
+        self.cache: dict = {}
+
+    def attempt(self, name: str, o: HexOptions, h: float) -> bool:
+        """One attempt; whether it ends the chain (within the gate and faithful)."""
+        try:
+            a = _attempt(name, self.labels, self.tissue, o, h, self.cache)
+        except KneeMeshError:
+            raise
+        except Exception as exc:  # a geometric failure: record it and fall back
+            self.tried.append(f"{name} ({type(exc).__name__}: {exc})")
+            return False
+        if abs(a.fidelity["volume_error"]) > MAX_ATTEMPT_VOLUME_ERROR:
+            self.tried.append(f"{name} (volume off by {a.fidelity['volume_error']:.0%})")
+            return False
+        if self.best is None or a.score() > self.best.score():
+            self.best = a
+        self.tried.append(name)
+        return a.within_gate and a.faithful
+
+    def floor_excess_of_default(self, base: HexOptions) -> float:
+        """:func:`floor_excess` of the default attempt's footprint (cached) in ``base``'s layers; 0 where
+        it has none (its rays failed: the fallbacks keep their order)."""
+        h = self.opts.element_size
+        try:
+            _, _, domain, hf = _rays(self.labels, self.tissue, base, h, self.cache)
+            fp, _ = _quads(hf, domain, base, h, self.cache)
+        except Exception:  # recorded by the attempt itself
+            return 0.0
+        return floor_excess(fp, base.layers, h)
+
+    def run(self, base: HexOptions, prefix: str = "") -> bool:
+        """The default attempt and then the fallbacks on ``base``, until one ends the chain; the fallbacks
+        with smaller elements first where the columns' floor would make the cartilage too thick."""
+        h = self.opts.element_size
+        if self.attempt(prefix + "default", base, h):
+            return True
+        order = FALLBACKS if self.opts.fallbacks else ()
+        if order and self.floor_excess_of_default(base) > MAX_FLOOR_EXCESS:
+            order = sorted(order, key=lambda fallback: "element_size_factor" not in fallback[1])  # stable
+        for name, change in order:
+            best = self.best
+            short = best is not None and short_of_footprint(best.fidelity)
+            # narrowing cannot help a mesh within the gate that already covers too little; widening is
+            # worth a try for any usable mesh short of the cartilage
+            if (name in NARROWING and short and best.within_gate) or (name in WIDENING and not (short and best.usable)):
+                continue
+            change = dict(change)
+            factor = change.pop("element_size_factor", 1.0)
+            if self.attempt(prefix + name, dataclasses.replace(base, **change), h * factor):
+                return True
+        return False
+
+    def in_fewer_layers(self) -> str:
+        """Last, for a cartilage too thin for its layers: the chain again in as many layers as fit.  Returns
+        why, for the report: ``median_thickness`` (thin by its median) or ``no_usable_mesh`` (a median that
+        fits, and no usable mesh in the layers asked).
+
+        Every column keeps a floor of layers x edge / EDGE_RATIO_AIM, so 4 layers of 1 mm elements cannot
+        follow cartilage under ~0.7 mm (phantom 30567 left severity 3 FC, median 0.51 mm: 3.9 % of elements
+        above the edge ratio in every attempt, no usable mesh); real knees' cartilages are thicker: it never
+        runs on them.  The whole chain, since thin cartilage varies at its rim as much as thick (phantom 30782
+        right severity 3 FC, median 0.52 mm: in 2 layers only the smoother surface kept its rim from folding
+        over itself).  A cartilage left with no usable mesh tries at least one layer fewer: a median can hide
+        a thin half (phantom 30805 left severity 2 FC: median 0.73 mm, a quarter under 0.36 mm; 1-5 % of
+        elements beyond the edge ratio and its rim crossing itself in every attempt in 4 layers)."""
+        opts = self.opts
+        layers = layers_that_fit(self.best.footprint, opts.element_size)
+        because = "median_thickness" if layers < opts.layers else "no_usable_mesh"
+        if not self.best.usable:
+            layers = min(layers, opts.layers - 1)
+        if 1 <= layers < opts.layers:
+            self.run(dataclasses.replace(opts, layers=layers), prefix=f"{layers}_layers_")
+        return because
+
+
 def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOptions()) -> CartilageMesh:
     """Hex mesh of one cartilage from canonical labels, trying the fallbacks (unless
     ``opts.fallbacks`` is off) until the gate and the fidelity targets are met.
@@ -308,79 +384,13 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
     if opts.layers < 1 or not 0.2 <= opts.element_size <= 5:
         raise KneeMeshError("bad_option", "layers must be >= 1 and element size 0.2-5 mm.")
     t0 = time.perf_counter()
-    tried: list[str] = []
-    best: Attempt | None = None
-    cache: dict = {}
-
-    def attempt(name: str, o: HexOptions, h: float) -> bool:
-        """One attempt, recorded in ``tried`` and kept in ``best`` if it ranks higher; whether it ends
-        the chain (within the gate and faithful)."""
-        nonlocal best
-        try:
-            a = _attempt(name, labels, tissue, o, h, cache)
-        except KneeMeshError:
-            raise
-        except Exception as exc:  # a geometric failure: record it and fall back
-            tried.append(f"{name} ({type(exc).__name__}: {exc})")
-            return False
-        if abs(a.fidelity["volume_error"]) > MAX_ATTEMPT_VOLUME_ERROR:
-            tried.append(f"{name} (volume off by {a.fidelity['volume_error']:.0%})")
-            return False
-        if best is None or a.score() > best.score():
-            best = a
-        tried.append(name)
-        return a.within_gate and a.faithful
-
-    def floor_excess_of_default(base: HexOptions) -> float:
-        """:func:`floor_excess` of the default attempt's footprint (cached) in ``base``'s layers; 0 where
-        it has none (its rays failed: the fallbacks keep their order)."""
-        try:
-            _, _, domain, hf = _rays(labels, tissue, base, opts.element_size, cache)
-            fp, _ = _quads(hf, domain, base, opts.element_size, cache)
-        except Exception:  # recorded by the attempt itself
-            return 0.0
-        return floor_excess(fp, base.layers, opts.element_size)
-
-    def chain(base: HexOptions, prefix: str = "") -> bool:
-        """The default attempt and then the fallbacks on ``base``, until one ends the chain; the fallbacks
-        with smaller elements first where the columns' floor would make the cartilage too thick."""
-        if attempt(prefix + "default", base, opts.element_size):
-            return True
-        order = FALLBACKS if opts.fallbacks else ()
-        if order and floor_excess_of_default(base) > MAX_FLOOR_EXCESS:
-            order = sorted(order, key=lambda fallback: "element_size_factor" not in fallback[1])  # stable
-        for name, change in order:
-            short = best is not None and short_of_footprint(best.fidelity)
-            # narrowing cannot help a mesh within the gate that already covers too little; widening is
-            # worth a try for any usable mesh short of the cartilage
-            if (name in NARROWING and short and best.within_gate) or (name in WIDENING and not (short and best.usable)):
-                continue
-            change = dict(change)
-            factor = change.pop("element_size_factor", 1.0)
-            if attempt(prefix + name, dataclasses.replace(base, **change), opts.element_size * factor):
-                return True
-        return False
-
-    if not chain(opts) and opts.fallbacks and best is not None:
-        # last, for a cartilage too thin for its layers: every column keeps a floor of layers x edge /
-        # EDGE_RATIO_AIM, so 4 layers of 1 mm elements cannot follow cartilage under ~0.7 mm (phantom
-        # 30567 left severity 3 FC, median 0.51 mm: 3.9 % of elements above the edge ratio in every
-        # attempt, no usable mesh); the chain runs again in as many layers as fit, and the report says
-        # so (real knees' cartilages are thicker: it never runs on them).  The whole chain, since thin
-        # cartilage varies at its rim as much as thick (phantom 30782 right severity 3 FC, median
-        # 0.52 mm: in 2 layers only the smoother surface kept its rim from folding over itself).  A
-        # cartilage left with no usable mesh tries at least one layer fewer: a median can hide a thin
-        # half (phantom 30805 left severity 2 FC: median 0.73 mm, a quarter under 0.36 mm; 1-5 % of
-        # elements beyond the edge ratio and its rim crossing itself in every attempt in 4 layers)
-        layers = layers_that_fit(best.footprint, opts.element_size)
-        # why, for the report: thin by its median, or (a median that fits) no usable mesh in the layers asked
-        fewer_because = "median_thickness" if layers < opts.layers else "no_usable_mesh"
-        if not best.usable:
-            layers = min(layers, opts.layers - 1)
-        if 1 <= layers < opts.layers:
-            chain(dataclasses.replace(opts, layers=layers), prefix=f"{layers}_layers_")
+    chain = _Chain(labels, tissue, opts)
+    fewer_because = None
+    if not chain.run(opts) and opts.fallbacks and chain.best is not None:
+        fewer_because = chain.in_fewer_layers()
+    best = chain.best
     if best is None:
-        raise KneeMeshError("meshing_failed", f"{tissue}: every attempt failed: {'; '.join(tried)}.")
+        raise KneeMeshError("meshing_failed", f"{tissue}: every attempt failed: {'; '.join(chain.tried)}.")
     layers = int(best.mesh.node_layer.max())
     facts = {
         "n_layers": layers,
@@ -394,7 +404,7 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
         "defect_holes": best.footprint.holes(),
         "finer_pieces": best.finer_pieces,
         "fallbacks": [] if best.name == "default" else [best.name],
-        "attempts": tried,
+        "attempts": chain.tried,
         "domain": best.domain.describe(),
         "gate_passed": bool(best.within_gate),
         "usable": bool(best.usable),

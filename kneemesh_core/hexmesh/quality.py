@@ -13,6 +13,16 @@ from kneemesh_core.surfaces.metrics import crossing_edges, crossings
 HEX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]])
 
 
+#: The articular (S2) face of a C3D8 hexahedron whose nodes 5-8 lie on the articular side, in the order
+#: that makes its normal point out of the element (Abaqus and ccx face S2: nodes 5, 8, 7, 6).
+ARTICULAR_FACE = [4, 7, 6, 5]
+
+
+def articular_quads(hexes: np.ndarray) -> np.ndarray:
+    """The articular faces (H, 4) of hexahedra (H, 8) in C3D8 order, normals pointing out of them."""
+    return np.asarray(hexes)[:, ARTICULAR_FACE]
+
+
 def to_grid(points: np.ndarray, hexes: np.ndarray) -> pv.UnstructuredGrid:
     """VTK unstructured grid of hexahedra (points (P, 3), hexes (H, 8))."""
     cells = np.hstack([np.full((len(hexes), 1), 8), hexes]).ravel()

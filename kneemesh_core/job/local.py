@@ -11,15 +11,12 @@ from typing import Callable
 
 from kneemesh_core.job.options import JobOptions
 from kneemesh_core.job.outputs import REPORT_FILE, STEPS_DIR, read_json
-from kneemesh_core.job.plan import INGEST, SEGMENT, needs, plan, run_step, start_order
+from kneemesh_core.job.plan import needs, plan, run_step, start_order
+from kneemesh_core.job.stages import STAGES
 from kneemesh_core.job.steps import warm_up
 
 #: Called with (step, state) as each step starts ("running") and ends (a tissue's status, or "done").
 Progress = Callable[[str, str], None]
-
-
-#: The steps that read the job's input file: they run in this process, before any other.
-_NEEDS_INPUT = (INGEST, SEGMENT)
 
 
 class JobCancelled(Exception):
@@ -52,7 +49,8 @@ def run(
         shutil.rmtree(Path(out_dir) / STEPS_DIR, ignore_errors=True)
     opts = options.to_dict()
     stages = plan(options)
-    waits = needs(stages)
+    waits = needs(options)
+    reads_input = {s for stage in STAGES if stage.input for s in stage.planned_steps(options)}
     order = start_order(stages)
     own_pool = pool is None and workers > 1
     if own_pool:
@@ -67,7 +65,7 @@ def run(
             ready = [s for s in order if s not in done and s not in running.values() and waits[s] <= done]
             for step in ready[: workers - len(running)]:  # a step goes to a free worker, not to a queue
                 say(step, "running")
-                if pool is None or step in _NEEDS_INPUT:  # alone by the plan: ingest and segment start a job
+                if pool is None or step in reads_input:  # alone by the plan: ingest and segment start a job
                     say(step, _outcome(run_step(out_dir, step, opts, input_path)))
                     done.add(step)
                     break  # what it unlocks is scheduled on the next turn

@@ -1,4 +1,4 @@
-"""The job folder: its file names, the step records, ``report.json`` and the bundle.
+"""The job folder: its file names, the step records, the unblended meshes kept between steps, and the bundle.
 
 Every file here is written atomically (:mod:`kneemesh_core.io.files`): a status page or a
 client reading the folder mid-job sees each file whole or not at all.
@@ -17,8 +17,6 @@ import numpy as np
 import pyvista as pv
 
 from kneemesh_core.io.files import TMP_PREFIX, atomic_path, atomic_write_json
-from kneemesh_core.job.verdict import knee_verdict, tissue_verdict
-from kneemesh_core.tissues import TISSUES
 
 LABELS_FILE = "labels.nrrd"
 JOB_FILE = "job.json"
@@ -91,41 +89,6 @@ def write_step(out_dir: str | os.PathLike, step: str, record: dict) -> None:
     folder = Path(out_dir) / STEPS_DIR
     folder.mkdir(exist_ok=True)
     atomic_write_json(folder / f"{step}.json", {"step": step, **record})
-
-
-def write_report(out_dir: str | os.PathLike, entries: dict[str, dict], conformed: dict | None = None,
-                 anatomy: dict | None = None, fe: dict | None = None, simulation: dict | None = None,
-                 overlaps: dict | None = None, segmentation: dict | None = None) -> dict:
-    """``report.json`` from ``job.json``, the tissue entries, what the conform step did (each
-    bone's entry gains ``conformed``, each of its cartilages' ``bone_conform``), the anatomy
-    step's entry (``anatomy``: residuals, angles, unplaced sites, status and reasons), the decks,
-    the simulation, the overlaps of the final meshes (:mod:`kneemesh_core.metrics.overlap`) and, for
-    an image, the segmentation's plausibility."""
-    out = Path(out_dir)
-    job = read_json(out / JOB_FILE)
-    entries = {t: dict(e) for t, e in entries.items()}
-    for bone, facts in (conformed or {}).items():
-        per = facts["cartilages"]
-        if bone in entries:
-            entries[bone]["conformed"] = {k: v for k, v in facts.items() if k != "cartilages"}
-        for t, f in per.items():
-            if t in entries:
-                entries[t]["bone_conform"] = f
-                entries[t]["status"], entries[t]["reasons"] = tissue_verdict(False, entries[t])
-    report = {
-        **job,
-        "tissues": {t: entries[t] for t in TISSUES if t in entries},
-        **({"anatomy": anatomy} if anatomy is not None else {}),
-        **({"fe": fe} if fe is not None else {}),
-        **({"simulation": simulation} if simulation is not None else {}),
-        **({"overlaps": overlaps} if overlaps is not None else {}),
-        **({"segmentation": segmentation} if segmentation is not None else {}),
-    }
-    report["verdict"] = knee_verdict(report)
-    report["summary"] = {status: sorted(t for t, e in entries.items() if e["status"] == status)
-                         for status in ("ok", "review", "failed")}
-    write_json(out / REPORT_FILE, report)
-    return report
 
 
 def sha256(path: Path) -> str:

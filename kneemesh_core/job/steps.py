@@ -1,12 +1,14 @@
-"""What runs on one knee: each function is one step of the plan, working in the job folder.
+"""What runs on one knee: each function is one step of a job, working in the job folder.
 
-Every argument is a path, a name or a plain dict, so a queue can carry it.  A tissue step
-never raises: its failure is its report entry (a failed tissue never sinks the knee).
+A step function takes a :class:`Step` (its name, the job folder, the options and, for the steps that
+read it, the input file) and returns its result, which its record keeps and the report reads.  A
+tissue step never raises: its failure is its report entry (a failed tissue never sinks the knee).
+The stages that run these functions, and when, are declared in :mod:`.stages`.
 """
 
 from __future__ import annotations
 
-import os
+import dataclasses
 import time
 import traceback
 from pathlib import Path
@@ -17,25 +19,42 @@ import pyvista as pv
 from kneemesh_core import __version__
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.hexmesh import CartilageMesh, blend_cartilage, mesh_cartilage
-from kneemesh_core.hexmesh.quality import boundary_crossings, summary
-from kneemesh_core.hexmesh.fidelity import FIGURES
 from kneemesh_core.hexmesh.conform import conform_bone
+from kneemesh_core.hexmesh.fidelity import FIGURES
+from kneemesh_core.hexmesh.quality import boundary_crossings, summary
 from kneemesh_core.io import read_label_map, read_volume, voxel_to_lps, write_image
 from kneemesh_core.io.files import atomic_path
 from kneemesh_core.job.options import INPUT_TYPES, JobOptions
-from kneemesh_core.job.verdict import tissue_verdict
 from kneemesh_core.job.outputs import (ATTACHMENTS_FIGURE, ATTACHMENTS_FILE, JOB_FILE, LABELS_FILE, MESHES_DIR,
-                                       SURFACES_DIR, WORK_DIR, load_unblended, read_json, read_step, save_mesh,
+                                       SURFACES_DIR, WORK_DIR, bundle, load_unblended, read_json, read_step, save_mesh,
                                        save_unblended, write_json)
+from kneemesh_core.job.verdict import tissue_verdict
 from kneemesh_core.knee import canonicalise, describe, describe_image
 from kneemesh_core.metrics.overlap import knee_overlaps
 from kneemesh_core.surfaces.tissue import reconstruct_bone
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, LABEL, resolve_convention
 
 
+@dataclasses.dataclass(frozen=True)
+class Step:
+    """One step of a job as its function sees it: ``name`` (``femur``, ``hex_femoral_cartilage``,
+    ``anatomy``), the job folder ``out``, the job's ``options`` and, for the steps that read it, the
+    job's ``input`` file."""
+
+    name: str
+    out: Path
+    options: JobOptions
+    input: Path | None = None
+
+
 def hex_step(cartilage: str) -> str:
     """The name of the step that meshes a cartilage before the cartilage's own step blends it."""
     return f"hex_{cartilage}"
+
+
+def cartilage_of(hex_step_name: str) -> str:
+    """The cartilage a :func:`hex_step` meshes."""
+    return hex_step_name.removeprefix("hex_")
 
 
 def warm_up() -> None:
@@ -49,73 +68,68 @@ def warm_up() -> None:
     figure.load()
 
 
-def ingest(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: JobOptions) -> dict:
+def ingest(step: Step) -> dict:
     """Validate the input and write canonical labels and ``job.json``.
 
     Nothing is written unless the input is valid.
     """
+    options = step.options
     options.tissues()
     if options.input_type not in INPUT_TYPES:
         raise KneeMeshError("bad_option", f"input type {options.input_type!r}: expected one of {', '.join(INPUT_TYPES)}.")
+    if step.input is None:
+        raise KneeMeshError("bad_option", "the ingest step needs the input file.")
     knee = None
     if options.input_type == "image":  # checked here, segmented by the segment step
         from kneemesh_core.segmentation.infer import SegmentationModel
 
-        vol = read_volume(input_path)
+        vol = read_volume(step.input)
         SegmentationModel.load(options.model)  # a missing or foreign model fails here, before anything is queued
         description = describe_image(vol.image, vol.source)
     else:
-        knee = canonicalise(read_label_map(input_path), resolve_convention(options.preset, options.labels), options.side)
+        knee = canonicalise(read_label_map(step.input), resolve_convention(options.preset, options.labels), options.side)
         description = describe(knee)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    step.out.mkdir(parents=True, exist_ok=True)
     if knee is not None:
-        write_image(knee.labels, out / LABELS_FILE)
-    job = {"kneemesh_version": __version__, "input": description, "options": options.to_dict()}
-    write_json(out / JOB_FILE, job)
-    return job
+        write_image(knee.labels, step.out / LABELS_FILE)
+    write_json(step.out / JOB_FILE, {"kneemesh_version": __version__, "input": description, "options": options.to_dict()})
+    return {"status": "ok"}
 
 
-def segment_input(input_path: str | os.PathLike, out_dir: str | os.PathLike, options: JobOptions) -> dict:
+def segment(step: Step) -> dict:
     """Image inputs: segment the image into canonical labels ``labels.nrrd``; ``job.json`` gains the
     knee's description and the segmentation's facts.  Returns the report's ``segmentation`` entry:
     ``review`` with the reasons when the labels are not a plausible knee
     (:mod:`kneemesh_core.segmentation.plausibility`)."""
-    from kneemesh_core.segmentation.infer import SegmentationModel, segment
+    from kneemesh_core.segmentation.infer import SegmentationModel, segment as run_network
     from kneemesh_core.segmentation.plausibility import check, figures
 
-    out = Path(out_dir)
-    model = SegmentationModel.load(options.model)
-    result = segment(read_volume(input_path), model, side=options.side)
-    write_image(result.knee.labels, out / LABELS_FILE)
-    job = read_json(out / JOB_FILE)
+    if step.input is None:
+        raise KneeMeshError("bad_option", "the segment step needs the input image.")
+    model = SegmentationModel.load(step.options.model)
+    result = run_network(read_volume(step.input), model, side=step.options.side)
+    write_image(result.knee.labels, step.out / LABELS_FILE)
+    job = read_json(step.out / JOB_FILE)
     facts = {"model": model.path.name, "model_version": model.meta.get("version"), "seconds": result.seconds,
              "image": job["input"]}
     job["input"] = {**describe(result.knee), "preset": "segmented", "segmentation": facts}
-    write_json(out / JOB_FILE, job)
+    write_json(step.out / JOB_FILE, job)
     plausibility = figures(result.knee.labels)
     status, reasons = check(plausibility)
     return {"status": status, "reasons": reasons, "side": result.knee.side, "seconds": result.seconds["total"],
             "tissues_ml": job["input"]["tissues"], "plausibility": plausibility}
 
 
-def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
-    """Mesh one tissue of an ingested job; returns its report entry, never raises.
+def mesh_bone(step: Step) -> dict:
+    """A bone's closed shell (``meshes/<bone>.vtp``, and ``.stl`` on request); returns its report entry,
+    never raises."""
+    out, tissue, opts = step.out, step.name, step.options
 
-    A bone is a closed shell (``meshes/<bone>.vtp``, and ``.stl`` on request).  A cartilage is
-    meshed first by its :func:`hex_cartilage` step; here its all-hex mesh is blended and fused
-    onto the bone mesh its bone's step wrote and kept as ``meshes/<cartilage>.vtu``
-    (``.rejected.vtu`` when no attempt is usable for FE).
-    """
-    opts = JobOptions.from_dict(options)
-    out = Path(out_dir)
-    folder = out / MESHES_DIR
-
-    def bone() -> dict:
+    def work() -> dict:
         labels = read_label_map(out / LABELS_FILE).image
-        folder.mkdir(exist_ok=True)
+        (out / MESHES_DIR).mkdir(exist_ok=True)
         mesh, facts = reconstruct_bone(labels, tissue, opts.surface)
-        files = [folder / f"{tissue}.vtp"] + ([folder / f"{tissue}.stl"] if opts.stl else [])
+        files = [out / MESHES_DIR / f"{tissue}.vtp"] + ([out / MESHES_DIR / f"{tissue}.stl"] if opts.stl else [])
         for f in files:
             save_mesh(mesh, f)
         entry = {"status": "ok", **facts}
@@ -123,15 +137,41 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
         entry["files"] = [str(f.relative_to(out)) for f in files]
         return entry
 
-    if tissue in BONES:
-        return _guarded(bone)  # a failed tissue never sinks the rest of the knee
+    return _guarded(work)  # a failed tissue never sinks the rest of the knee
+
+
+def hex_cartilage(step: Step) -> dict:
+    """The all-hex mesh of one cartilage before its blend (:func:`kneemesh_core.hexmesh.mesh_cartilage`):
+    it needs only the labels, so it runs beside the bones, and the cartilage's own step blends it
+    onto its bone.  Writes the reconstructed surface it was meshed from (``surfaces/<cartilage>.vtp``)
+    and the unblended mesh (``work/<cartilage>.npz``); returns what the attempts gave, or the
+    cartilage's failed entry (never raises)."""
+    out, tissue = step.out, cartilage_of(step.name)
+
+    def work() -> dict:
+        cm = mesh_cartilage(read_label_map(out / LABELS_FILE).image, tissue, step.options.hex)
+        for sub in (SURFACES_DIR, WORK_DIR):
+            (out / sub).mkdir(exist_ok=True)
+        save_mesh(cm.surface, out / SURFACES_DIR / f"{tissue}.vtp")
+        save_unblended(cm, out / WORK_DIR / f"{tissue}.npz")
+        return {"status": "done", **{k: cm.facts[k] for k in ("gate_passed", "usable", "fidelity_passed", "attempts")}}
+
+    return _guarded(work)
+
+
+def finish_cartilage(step: Step) -> dict:
+    """A cartilage meshed by its :func:`hex_cartilage` step, blended and fused onto the bone mesh its
+    bone's step wrote, kept as ``meshes/<cartilage>.vtu`` (``.rejected.vtu`` when no attempt is usable
+    for finite elements); returns its report entry, never raises."""
+    out, tissue, opts = step.out, step.name, step.options
+    folder = out / MESHES_DIR
     meshed = read_step(out, hex_step(tissue))
     if meshed is None or meshed["state"] != "done":
         return {"status": "failed", "code": "internal", "reason": f"the step {hex_step(tissue)} has not run.", "seconds": 0.0}
     if meshed["result"]["status"] == "failed":  # no mesh at all: its entry says why
         return meshed["result"]
 
-    def cartilage() -> dict:
+    def work() -> dict:
         surface_file = out / SURFACES_DIR / f"{tissue}.vtp"
         cm = load_unblended(out / WORK_DIR / f"{tissue}.npz", pv.read(surface_file))
         ships = cm.facts["gate_passed"] or cm.facts["usable"]  # short of the gate but usable: for review
@@ -153,29 +193,9 @@ def mesh_tissue(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
         entry["files"] = [str(f.relative_to(out)) for f in files]
         return entry
 
-    entry = _guarded(cartilage)
+    entry = _guarded(work)
     entry["seconds"] = round(entry["seconds"] + meshed["result"]["seconds"], 3)  # its meshing's and its blend's
     return entry
-
-
-def hex_cartilage(out_dir: str | os.PathLike, tissue: str, options: dict) -> dict:
-    """The all-hex mesh of one cartilage before its blend (:func:`kneemesh_core.hexmesh.mesh_cartilage`):
-    it needs only the labels, so it runs beside the bones, and the cartilage's own step blends it
-    onto its bone.  Writes the reconstructed surface it was meshed from (``surfaces/<cartilage>.vtp``)
-    and the unblended mesh (``work/<cartilage>.npz``); returns what the attempts gave, or the
-    cartilage's failed entry (never raises)."""
-    opts = JobOptions.from_dict(options)
-    out = Path(out_dir)
-
-    def work() -> dict:
-        cm = mesh_cartilage(read_label_map(out / LABELS_FILE).image, tissue, opts.hex)
-        for sub in (SURFACES_DIR, WORK_DIR):
-            (out / sub).mkdir(exist_ok=True)
-        save_mesh(cm.surface, out / SURFACES_DIR / f"{tissue}.vtp")
-        save_unblended(cm, out / WORK_DIR / f"{tissue}.npz")
-        return {"status": "done", **{k: cm.facts[k] for k in ("gate_passed", "usable", "fidelity_passed", "attempts")}}
-
-    return _guarded(work)
 
 
 def shipped_figures(cm: CartilageMesh) -> dict:
@@ -199,16 +219,15 @@ def shipped_figures(cm: CartilageMesh) -> dict:
     return facts
 
 
-def conform_bones(out_dir: str | os.PathLike, options: dict) -> dict:
+def conform_bones(step: Step) -> dict:
     """Each bone surface gives way where the accepted meshes of its cartilages still lie inside it
     (:func:`kneemesh_core.hexmesh.conform.conform_bone`); the bone's files are rewritten only where
-    it changed.  Returns what was done per bone.  Idempotent: a second run finds no cartilage
-    inside and changes nothing."""
-    opts = JobOptions.from_dict(options)
-    folder = Path(out_dir) / MESHES_DIR
+    it changed.  Returns what was done per bone (:func:`fold_conformed` puts it in the tissues'
+    report entries).  Idempotent: a second run finds no cartilage inside and changes nothing."""
+    folder = step.out / MESHES_DIR
     done = {}
     for bone in BONES:
-        files = [folder / f"{bone}.vtp"] + ([folder / f"{bone}.stl"] if opts.stl else [])
+        files = [folder / f"{bone}.vtp"] + ([folder / f"{bone}.stl"] if step.options.stl else [])
         grids = {t: pv.read(folder / f"{t}.vtu") for t in CARTILAGES
                  if BONE_OF[t] == bone and (folder / f"{t}.vtu").exists()}
         if not files[0].exists() or not grids:
@@ -225,7 +244,19 @@ def conform_bones(out_dir: str | os.PathLike, options: dict) -> dict:
     return done
 
 
-def place_anatomy(out_dir: str | os.PathLike, options: dict) -> dict:
+def fold_conformed(tissues: dict[str, dict], conformed: dict) -> None:
+    """What :func:`conform_bones` did, in the tissues' report entries: each bone's entry gains
+    ``conformed``, each of its cartilages' ``bone_conform`` and a verdict that judges it."""
+    for bone, facts in conformed.items():
+        if bone in tissues:
+            tissues[bone]["conformed"] = {k: v for k, v in facts.items() if k != "cartilages"}
+        for t, f in facts["cartilages"].items():
+            if t in tissues:
+                tissues[t]["bone_conform"] = f
+                tissues[t]["status"], tissues[t]["reasons"] = tissue_verdict(False, tissues[t])
+
+
+def place_anatomy(step: Step) -> dict:
     """The knee's frames, Grood-Suntay angles and ligament attachment sites on the job's bone meshes
     (:mod:`kneemesh_core.anatomy`): ``attachments.json`` and ``attachments.png``.  Returns the
     report's ``anatomy`` entry; never raises (a failure is the entry, and the meshes stay)."""
@@ -234,7 +265,7 @@ def place_anatomy(out_dir: str | os.PathLike, options: dict) -> dict:
     from kneemesh_core.anatomy.attachments import place
     from kneemesh_core.anatomy.figure import draw
 
-    out = Path(out_dir)
+    out = step.out
 
     def work() -> dict:
         side = read_json(out / JOB_FILE)["input"]["side"]
@@ -254,10 +285,35 @@ def place_anatomy(out_dir: str | os.PathLike, options: dict) -> dict:
     return _guarded(work)
 
 
-def measure_overlaps(out_dir: str | os.PathLike) -> dict:
+def measure_overlaps(step: Step) -> dict:
     """Where the job's final meshes overlap (:func:`kneemesh_core.metrics.overlap.knee_overlaps`): the
     report's ``overlaps`` entry; never raises (a failure is the entry)."""
-    return _guarded(lambda: knee_overlaps(Path(out_dir) / MESHES_DIR))
+    return _guarded(lambda: knee_overlaps(step.out / MESHES_DIR))
+
+
+def write_decks(step: Step) -> dict:
+    """The Abaqus and CalculiX decks of the knee in ``fe/`` (:mod:`kneemesh_core.fe`); never raises."""
+    from kneemesh_core.fe.physics import LoadCase
+    from kneemesh_core.fe.run import write_decks as write
+
+    return _guarded(lambda: {"status": "ok", **write(step.out, LoadCase(cartilage=step.options.fe_cartilage))})
+
+
+def run_simulation(step: Step) -> dict:
+    """CalculiX on the decks (smoke: to 15 deg; full: to 90 deg); ``fe/results.json`` and
+    ``fe/contact.png``.  Never raises: a failed simulation is its entry, the meshes and decks stay."""
+    from kneemesh_core.fe.physics import LoadCase
+    from kneemesh_core.fe.run import run_folder, simulate, simulation_entry
+
+    opts = step.options
+    smoke = opts.simulate == "smoke"
+    return _guarded(lambda: simulation_entry(simulate(step.out, smoke=smoke, load=LoadCase(cartilage=opts.fe_cartilage)),
+                                             opts.simulate, run_folder(smoke)))
+
+
+def bundle_outputs(step: Step) -> dict:
+    """Zip the outputs (``bundle.zip``) and list every artifact with its SHA-256 (``artifacts.json``)."""
+    return {"artifacts": len(bundle(step.out))}
 
 
 def _guarded(work) -> dict:
@@ -273,39 +329,3 @@ def _guarded(work) -> dict:
                  "traceback": traceback.format_exc(limit=5)}
     entry["seconds"] = round(time.perf_counter() - t0, 3)
     return entry
-
-
-def write_decks(out_dir: str | os.PathLike, options: dict) -> dict:
-    """The Abaqus and CalculiX decks of the knee in ``fe/`` (:mod:`kneemesh_core.fe`); never raises."""
-    from kneemesh_core.fe.model import LoadCase
-    from kneemesh_core.fe.run import write_decks as write
-
-    opts = JobOptions.from_dict(options)
-    return _guarded(lambda: {"status": "ok", **write(Path(out_dir), LoadCase(cartilage=opts.fe_cartilage))})
-
-
-def run_simulation(out_dir: str | os.PathLike, options: dict) -> dict:
-    """CalculiX on the decks (smoke: to 15 deg; full: to 90 deg); ``fe/results.json`` and
-    ``fe/contact.png``.  Never raises: a failed simulation is its entry, the meshes and decks stay."""
-    from kneemesh_core.fe.model import LoadCase
-    from kneemesh_core.fe.results import CONTACT_FIGURE, CONTACTS, RESULTS_FILE
-    from kneemesh_core.fe.run import FE_DIR, SMOKE_DIR, simulate
-
-    opts = JobOptions.from_dict(options)
-
-    def work() -> dict:
-        r = simulate(Path(out_dir), smoke=opts.simulate == "smoke", load=LoadCase(cartilage=opts.fe_cartilage))
-        last = r["increments"][-1] if r["increments"] else {}
-        # stopped part-way: the increments it reached are results (review); none reached: failed;
-        # completed outside physiology (a peak above 20 MPa, a plate unloaded): review
-        reasons = ([] if r["completed"] else [f"stopped at {r['reached_flexion_deg']:g} of {r['target_flexion_deg']:g} deg: "
-                                              f"{r['reason']}"]) + r["physiology_reasons"]
-        status = "failed" if not r["completed"] and r["reached_flexion_deg"] <= 0 else "review" if reasons else "ok"
-        return {"status": status, "reasons": reasons, "kind": opts.simulate, "completed": r["completed"],
-                "physiological": r["physiological"],
-                "reason": r["reason"], "solver": r["solver"], "solver_seconds": r["seconds"],
-                "reached_flexion_deg": r["reached_flexion_deg"], "target_flexion_deg": r["target_flexion_deg"],
-                "final": {k: v for k, v in last.items() if k in ("balance_error", *CONTACTS)},
-                "files": [f"{FE_DIR}/{SMOKE_DIR + '/' if opts.simulate == 'smoke' else ''}{f}" for f in (RESULTS_FILE, CONTACT_FIGURE)]}
-
-    return _guarded(work)

@@ -3,7 +3,7 @@
 ``ok`` means every target was met for the file that ships; ``review`` means the file exists but
 misses a fidelity or plausibility target; ``failed`` means there is no usable file.  Every
 ``review`` and ``failed`` lists its reasons.  The targets are those of
-:mod:`kneemesh_core.hexmesh.targets` (cartilage) and :data:`BONE_TARGETS`.
+:mod:`kneemesh_core.hexmesh.targets` (cartilage) and :mod:`kneemesh_core.surfaces.targets` (bone).
 """
 
 from __future__ import annotations
@@ -12,11 +12,10 @@ from kneemesh_core.hexmesh.fidelity import FIGURES, fidelity_checks
 from kneemesh_core.hexmesh.targets import (FUSED_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM, MAX_EDGE_RATIO,
                                            MAX_FRAC_EDGE_RATIO, MIN_COVERAGE, MIN_SCALED_JACOBIAN, USABLE_FRAC_BELOW,
                                            USABLE_FRAC_EDGE_RATIO, USABLE_MIN_SCALED_JACOBIAN, VOLUME_TOL)
+from kneemesh_core.surfaces.targets import MAX_MEAN_DISTANCE_MM, MAX_P95_DISTANCE_MM
 
 OK, REVIEW, FAILED = "ok", "review", "failed"
 _RANK = {OK: 0, REVIEW: 1, FAILED: 2}
-#: A bone shell: closed, manifold, not crossing itself, within these distances of its label (mm).
-BONE_TARGETS = {"mean_mm": 0.3, "p95_mm": 0.8}
 
 
 def worst(statuses) -> str:
@@ -30,9 +29,9 @@ def bone_reasons(e: dict) -> list[str]:
     if e.get("self_intersections"):
         out.append(f"the bone shell crosses itself ({e['self_intersections']} edges)")
     d = e.get("surface_distance_mm", {})
-    if d.get("mean", 0) > BONE_TARGETS["mean_mm"] or d.get("p95", 0) > BONE_TARGETS["p95_mm"]:
+    if d.get("mean", 0) > MAX_MEAN_DISTANCE_MM or d.get("p95", 0) > MAX_P95_DISTANCE_MM:
         out.append(f"the bone shell lies {d.get('mean')} mm (mean) / {d.get('p95')} mm (p95) from its label "
-                   f"(targets {BONE_TARGETS['mean_mm']} / {BONE_TARGETS['p95_mm']} mm)")
+                   f"(targets {MAX_MEAN_DISTANCE_MM} / {MAX_P95_DISTANCE_MM} mm)")
     return out
 
 
@@ -99,12 +98,15 @@ def tissue_verdict(tissue_is_bone: bool, e: dict) -> tuple[str, list[str]]:
 
 
 def knee_verdict(report: dict) -> dict:
-    """The knee's verdict: the worst of its segmentation (an image), tissues, anatomy, decks,
-    simulation and overlaps, every reason named."""
-    def present(*keys: str) -> dict:
-        return {k: report[k] for k in keys if k in report}
-
-    parts = {**present("segmentation"), **report.get("tissues", {}), **present("anatomy", "fe", "simulation", "overlaps")}
+    """The knee's verdict: the worst of its entries (each tissue of ``tissues``, and every other section
+    of the report with a ``status``: the segmentation of an image, the anatomy, the decks, the simulation,
+    the overlaps, any new stage's), every reason named, in the report's order."""
+    parts: dict[str, dict] = {}
+    for key, value in report.items():
+        if key == "tissues":
+            parts.update(value)
+        elif isinstance(value, dict) and "status" in value:
+            parts[key] = value
     reasons = []
     for name, e in parts.items():
         if e.get("status") == FAILED:

@@ -1,7 +1,7 @@
 """Agreement between two results of the same knee (e.g. from manual and from predicted labels), as
 the paper measures it (Gibbons et al. 2022, Figure 2 and Table 2):
 
-* Dice of each tissue's labels;
+* Dice of each tissue's labels (:func:`kneemesh_core.metrics.labels.dice`);
 * articular surface deviation: from each articular node of mesh A to the nearest point of mesh B's
   articular surface, kept only where that direction lies within 20 deg of A's surface normal there
   (the rest are edges that do not face each other); the kept fraction is the *percent nodal coverage*;
@@ -13,35 +13,20 @@ from __future__ import annotations
 
 import numpy as np
 import pyvista as pv
-import SimpleITK as sitk
 
+from kneemesh_core.fe.results import loaded
 from kneemesh_core.geometry import quad_node_normals, unit
-from kneemesh_core.tissues import LABEL
+from kneemesh_core.hexmesh.quality import articular_quads
 
 #: Rays further than this from the normal are not counted (the paper's 20 deg), deg.
 MAX_RAY_ANGLE_DEG = 20.0
-
-
-def dice(a: sitk.Image, b: sitk.Image) -> dict[str, float | None]:
-    """Dice of each tissue between two canonical label maps (``b`` resampled onto ``a``'s grid by
-    nearest neighbour when the grids differ); None where neither has the tissue."""
-    if (a.GetSize(), a.GetSpacing(), a.GetOrigin(), a.GetDirection()) != (b.GetSize(), b.GetSpacing(), b.GetOrigin(), b.GetDirection()):
-        b = sitk.Resample(b, a, sitk.Transform(), sitk.sitkNearestNeighbor, 0)
-    x, y = sitk.GetArrayViewFromImage(a), sitk.GetArrayViewFromImage(b)
-    out = {}
-    for tissue, value in LABEL.items():
-        ia, ib = x == value, y == value
-        total = int(ia.sum()) + int(ib.sum())
-        out[tissue] = round(2.0 * int((ia & ib).sum()) / total, 5) if total else None
-    return out
 
 
 def articular_surface(grid: pv.UnstructuredGrid) -> tuple[np.ndarray, np.ndarray]:
     """The articular surface of a KneeMesh cartilage mesh: points (P, 3) mm and quads (Q, 4) into
     them, the articular (top, S2) faces of the outermost layer of hexahedra."""
     layer = np.asarray(grid.cell_data["layer"])
-    hexes = np.asarray(grid.cells_dict[pv.CellType.HEXAHEDRON])[layer == layer.max()]
-    quads = hexes[:, [4, 5, 6, 7]]
+    quads = articular_quads(np.asarray(grid.cells_dict[pv.CellType.HEXAHEDRON])[layer == layer.max()])
     used, local = np.unique(quads, return_inverse=True)
     return np.asarray(grid.points)[used], local.reshape(-1, 4)
 
@@ -67,7 +52,7 @@ def surface_deviation(a: pv.UnstructuredGrid, b: pv.UnstructuredGrid,
 
 
 def _curve(results: dict, side: str, key: str) -> tuple[np.ndarray, np.ndarray]:
-    inc = [r for r in results["increments"] if r["time"] >= 1.0 and r.get("flexion_deg") is not None]
+    inc = [r for r in loaded(results["increments"]) if r.get("flexion_deg") is not None]
     return np.array([r["flexion_deg"] for r in inc]), np.array([r[side][key] for r in inc], float)
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage as ndi
 
-from kneemesh_core.errors import KneeMeshError
+from kneemesh_core.metrics.labels import dice, on_grid_of
 from kneemesh_core.tissues import LABEL, TISSUES
 
 
@@ -25,11 +25,10 @@ def _surface_distances(a: np.ndarray, b: np.ndarray, spacing_zyx) -> np.ndarray:
 
 def compare(pred: sitk.Image, truth: sitk.Image) -> dict[str, dict]:
     """Per canonical tissue present in either map: ``dice``, ``assd_mm``, ``hd95_mm`` (None where a map
-    lacks it), and the volumes in ml.  Both maps must share their grid."""
-    if pred.GetSize() != truth.GetSize() or not np.allclose(pred.GetSpacing(), truth.GetSpacing(), atol=1e-4) \
-            or not np.allclose(pred.GetOrigin(), truth.GetOrigin(), atol=1e-3) \
-            or not np.allclose(pred.GetDirection(), truth.GetDirection(), atol=1e-4):
-        raise KneeMeshError("grid_mismatch", "the two label maps are not on the same grid (size, spacing, origin, direction).")
+    lacks it), and the volumes in ml, on the prediction's grid (the reference on it:
+    :func:`kneemesh_core.metrics.labels.on_grid_of`)."""
+    truth = on_grid_of(pred, truth)
+    dices = dice(pred, truth)
     p, t = sitk.GetArrayViewFromImage(pred), sitk.GetArrayViewFromImage(truth)
     spacing = pred.GetSpacing()[::-1]
     voxel_ml = float(np.prod(spacing)) / 1000.0
@@ -38,7 +37,7 @@ def compare(pred: sitk.Image, truth: sitk.Image) -> dict[str, dict]:
         a, b = p == LABEL[tissue], t == LABEL[tissue]
         if not a.any() and not b.any():
             continue
-        row = {"dice": round(float(2 * (a & b).sum() / (a.sum() + b.sum())), 4),
+        row = {"dice": round(dices[tissue], 4),
                "pred_ml": round(float(a.sum() * voxel_ml), 3), "truth_ml": round(float(b.sum() * voxel_ml), 3),
                "assd_mm": None, "hd95_mm": None}
         if a.any() and b.any():

@@ -27,26 +27,11 @@ from kneemesh_core import __version__
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.segmentation.dataset import Subject, load_subject, phantom_subject, sample, split_by_subject
 from kneemesh_core.segmentation.model import ResUNet2D
+from kneemesh_core.segmentation.options import TrainOptions
 from kneemesh_core.segmentation.preprocess import NET_CLASSES, NET_ORIENTATION, PERCENTILES
 from kneemesh_core.segmentation.synth import synthesize
 
 LABEL_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".mha")
-
-
-@dataclasses.dataclass(frozen=True)
-class TrainOptions:
-    epochs: int = 40
-    steps_per_epoch: int = 100
-    batch: int = 12
-    crop: int = 256
-    lr: float = 3e-3
-    widths: tuple[int, ...] = (16, 32, 64, 96)
-    head: int = 12
-    patience: int = 8
-    seed: int = 0
-    val_slices: int = 48
-    threads: int = 0  # 0: torch's default
-    max_minutes: float = 0.0  # a time budget (0: none): the schedule runs on the clock and ends with it
 
 
 def find_label_maps(folders: list[Path]) -> list[str]:

@@ -33,7 +33,7 @@ from services.store import FileStore
 
 def create_app(settings: Settings | None = None, runner=None) -> FastAPI:
     """The API over ``settings.data_dir``; jobs go to Celery when a broker is set, else to an in-process pool."""
-    settings = settings or Settings.from_env()
+    settings = settings or Settings()
     jobs = Jobs(FileStore(settings.data_dir))
     if runner is None:
         if settings.broker_url:

@@ -1,5 +1,7 @@
-"""Every error the API answers is ``{"code", "message"}`` (with ``details`` for invalid requests),
-unmatched routes and framework errors included."""
+"""Every error the API answers has the body ``{"code", "message"}``, with ``details`` for an invalid
+request: the service's own (:class:`ApiError`, raised by the routes with a stable code), the framework's
+HTTP errors (an unmatched route, a method not allowed, an upload over the limit) and request validation
+errors.  A refused POST counts in the metrics under its code."""
 
 from __future__ import annotations
 
@@ -18,6 +20,9 @@ HTTP_CODES = {400: "bad_request", 404: "not_found", 405: "method_not_allowed"}
 
 
 class ApiError(Exception):
+    """An error a route answers: HTTP ``status``, a stable ``code`` and a ``message`` that says what is
+    wrong and what is expected."""
+
     def __init__(self, status: int, code: str, message: str):
         self.status, self.code, self.message = status, code, message
 

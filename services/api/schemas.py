@@ -34,11 +34,19 @@ class JobCreated(BaseModel):
     urls: Links
 
 
+def _stage_kinds(schema: dict) -> None:
+    """The ``kind`` of a step: the name of its stage, one of the job's stages as declared
+    (``kneemesh_core.job.stages``), read when the schema is built."""
+    from kneemesh_core.job import STAGES
+
+    schema["enum"] = [stage.name for stage in STAGES]
+    schema["description"] = "The step's stage: " + "; ".join(f"`{s.name}`, {s.about}" for s in STAGES) + "."
+
+
 class StepProgress(BaseModel):
-    step: str = Field(description="ingest, segment, a tissue name, hex_<cartilage>, conform, anatomy, decks, overlaps, "
-                                  "simulate, report or bundle.")
-    kind: str = Field(description="ingest, segment, bone, hexmesh (a cartilage's mesh before its blend), cartilage, conform, "
-                                  "anatomy, decks, overlaps, simulate, report or bundle.")
+    step: str = Field(description="The step's name: its stage's, or for a stage of one step per tissue the tissue's "
+                                  "(`bone`, `cartilage`) or `hex_<cartilage>` (`hexmesh`).")
+    kind: str = Field(json_schema_extra=_stage_kinds)
     stage: int = Field(description="The step's stage in the job's plan: steps of one stage may run in parallel, and a step "
                                    "starts once the steps of earlier stages it reads from are done.")
     state: StepState

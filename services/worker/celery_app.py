@@ -74,7 +74,7 @@ def make_app(settings: Settings, main: str = "kneemesh") -> Celery:
     return app
 
 
-app = make_app(Settings.from_env())
+app = make_app(Settings())
 
 
 def _jobs() -> Jobs:

@@ -1,0 +1,69 @@
+"""``knee_ccx.inp``: the CalculiX dialect over the shared model (:mod:`.deck`), static and implicit.
+
+Rigid bodies as node sets with REF and ROT nodes (ccx carries a rigid body's rotations on its ROT
+node's dofs 1-3), face-to-face contact pairs, the restraint springs, a ``*STATIC`` seating step under
+the joint load and a flexion step, print requests for the results reader (:mod:`.results`).  No
+keyword or parameter ccx skips: no ``*PART``, no ``NAME=`` on steps, no ``ENCASTRE``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from kneemesh_core import __version__
+from kneemesh_core.fe import inp
+from kneemesh_core.fe.model import Model
+from kneemesh_core.fe.physics import FIXED_BODY, FLEXION, MOVING_BODIES
+
+#: ccx's equilibrium check: residual forces below 0.5 % of a reference force of 100 N (0.5 N, on a
+#: joint load of hundreds to thousands of N).  ccx's default reference is the average force over
+#: every node, which thousands of unloaded rigid-body nodes drive to 1e-2 N, and the default
+#: tolerance to 1e-5 N: far more iterations for no better answer.
+CONTROLS = ("*CONTROLS, PARAMETERS=FIELD", "0.005, 0.01, 100.0, 100.0")
+
+
+def rot_nodes(m: Model) -> dict[str, int]:
+    """The ROT node of each moving rigid body (the held body is no rigid body: its nodes are held)."""
+    return {b: m.next_id + i for i, b in enumerate(MOVING_BODIES)}
+
+
+def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str) -> str:
+    """Seat under the joint load and the quadriceps force, then flex the femur ``flexion_deg`` about X,
+    at most ``max_increment_deg`` an increment; ``include`` is the shared model's path."""
+    rot = rot_nodes(m)
+    flex, step = flexion_deg, max_increment_deg
+
+    def dof_of(body: str, kind: str, axis: int) -> tuple[int, int]:
+        return (m.ref[body] if kind == "translation" else rot[body]), axis + 1
+
+    w = ["*HEADING", f"KneeMesh {__version__} knee, CalculiX dialect: rigid bodies, {flex:g} deg flexion under "
+         f"{m.load.joint_load_n:g} N", f"*INCLUDE, INPUT={include}", "*NODE"]
+    w += [f"{n}, " + ", ".join(f"{c:.6f}" for c in m.nodes[m.ref[b]]) for b, n in rot.items()]
+    for b, n in rot.items():
+        w.append(f"*RIGID BODY, NSET={b.upper()}_BODY, REF NODE={m.ref[b]}, ROT NODE={n}")
+    w += inp.contact_pairs(m, "TYPE=SURFACE TO SURFACE")
+    w += inp.restraints(m, m.next_element, dof_of)[0]
+    w += [f"*NSET, NSET=FEMUR_REF\n{m.ref['femur']}", f"*NSET, NSET=ROTS\n{', '.join(str(n) for n in rot.values())}"]
+    outputs = ["*NODE PRINT, NSET=REFS", "U", "*NODE PRINT, NSET=ROTS", "U",
+               f"*NODE PRINT, NSET={FIXED_BODY.upper()}_BODY, TOTALS=ONLY", "RF", "*NODE PRINT, NSET=LIGAMENT_ENDS", "U"]
+    for name, (slave, master) in m.pairs.items():
+        outputs += [f"*CONTACT PRINT, SLAVE={slave.upper()}_ARTICULAR, MASTER={master.upper()}_ARTICULAR", "CF"]
+    outputs += ["*CONTACT PRINT", "CSTR"]
+    driven, dof = dof_of(FLEXION[0], FLEXION[1], FLEXION[2])
+    # step 1: the femur, seated at the depth that carries the joint load (model.seat_femur), takes the whole
+    # load and the quadriceps force at once; flexion held at the image pose.  The held body's nodes are held
+    # (a rigid body held still, without ccx's three MPCs a node)
+    w += ["** step 1: settle under the joint load and the quadriceps force from the seated pose",
+          "*STEP, NLGEOM, INC=200", "*STATIC", "1.0, 1.0, 1e-6, 1.0", *CONTROLS, "*BOUNDARY",
+          f"{FIXED_BODY.upper()}_BODY, 1, 3, 0.0", f"{m.ref[FIXED_BODY]}, 1, 3, 0.0", f"{driven}, {dof}, {dof}, 0.0",
+          "*CLOAD, AMPLITUDE=HOLD", *inp.joint_load(m), *outputs, "*END STEP"]
+    # step 2: flex the femur about X, the joint load held; whole increments (rounded up, so that
+    # ccx adds no sliver of an increment at the end)
+    n = int(np.ceil(flex / min(step, flex) - 1e-9))
+    dt = np.ceil(1e10 / n) / 1e10
+    w += [f"** step 2: flex the femur {flex:g} deg about the flexion axis (X), at most {step:g} deg an increment",
+          "*STEP, NLGEOM, INC=1000", "*STATIC", f"{dt:.10f}, 1.0, 1e-6, {dt:.10f}",
+          *CONTROLS,
+          "*BOUNDARY, AMPLITUDE=RAMP", f"{driven}, {dof}, {dof}, {np.radians(flex):.6f}",
+          *outputs, "*END STEP"]
+    return "\n".join(w) + "\n"

@@ -1,0 +1,192 @@
+"""The physics of the knee model in one place: materials, the ligament law, loads, restraints,
+boundary conditions and the limits a run is judged by.  Units: mm, N, MPa, s (and tonne/mm^3 for
+density, the consistent mass unit).
+
+The model (:mod:`.model`), both deck dialects (:mod:`.calculix`, :mod:`.abaqus`) and the results
+reader (:mod:`.results`) read them here, so the two decks model the same knee and the results are
+read with the law the deck applied.  ``docs/fe-model.md`` describes the model as a whole.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+# -- cartilage ---------------------------------------------------------------------------------
+#: Cartilage modulus behind the contact stiffness, MPa: the instantaneous compressive modulus of human
+#: knee cartilage is 5-15 MPa; the paper's rigid-cartilage models use linear contact laws of this kind.
+CARTILAGE_MODULUS_MPA = 10.0
+#: Cartilage Poisson ratio (0.45 in Blankevoort et al. 1991 and Bei & Fregly 2004: nearly incompressible
+#: under a short load).  A thin layer that cannot bulge is 3.79 times stiffer than E / h; with E / h alone
+#: the sample's femur sank 0.96 mm into 4.2 mm of cartilage to carry 1000 N and 4.7 mm by 30 deg of
+#: flexion, and the full flexion stopped at 45 deg; with the confined layer it seats at 0.51 mm and flexes
+#: to 90 deg.
+CARTILAGE_POISSON = 0.45
+#: Cartilage density, tonne/mm^3 (1100 kg/m^3; only the Abaqus/Explicit deck uses it).
+CARTILAGE_DENSITY_T_MM3 = 1.1e-9
+#: The confined modulus of a thin layer bonded to bone, MPa: M = (1 - nu) E / ((1 + nu)(1 - 2 nu)).
+CONFINED_MODULUS_MPA = CARTILAGE_MODULUS_MPA * (1 - CARTILAGE_POISSON) / ((1 + CARTILAGE_POISSON) * (1 - 2 * CARTILAGE_POISSON))
+
+
+def contact_stiffness(thickness_a_mm: float, thickness_b_mm: float) -> float:
+    """The linear pressure-overclosure stiffness (N/mm^3) of two cartilage layers in contact: each a
+    thin elastic layer on bone (the elastic foundation of Blankevoort et al. 1991 and Bei & Fregly
+    2004), springs in series, K = M / (h_a + h_b), rounded as the deck states it."""
+    return round(CONFINED_MODULUS_MPA / (thickness_a_mm + thickness_b_mm), 4)
+
+
+# -- ligaments ---------------------------------------------------------------------------------
+#: Blankevoort (1991) transition strain, as OpenSim implements the law.
+TRANSITION_STRAIN = 0.06
+#: A slack fibre's slope in compression, a fraction of its stiffness k per unit strain: a tension-only
+#: spring would leave a singular tangent while slack.  The results read a slack fibre as 0 N.
+SLACK_SLOPE = 1e-3
+
+
+def ligament_force(stiffness_n: float, strain):
+    """Blankevoort force (N) of a fibre of ``stiffness_n`` (N per unit strain) at ``strain``
+    (L / L0 - 1; a scalar or an array): 0 when slack, k e^2 / (2 e_t) up to e_t, k (e - e_t / 2) beyond."""
+    e, et = np.asarray(strain, float), TRANSITION_STRAIN
+    return np.where(e <= 0, 0.0, np.where(e < et, stiffness_n * e ** 2 / (2 * et), stiffness_n * (e - et / 2)))
+
+
+def ligament_table(stiffness_n: float, slack_mm: float, length_mm: float, points: int = 48) -> list[tuple[float, float]]:
+    """(force N, elongation mm) pairs of a fibre's nonlinear spring, elongation from its initial
+    ``length_mm``; :func:`ligament_force` with :data:`SLACK_SLOPE` in compression.
+
+    ccx holds a nonlinear spring's force constant beyond its table (a fibre past the last pair pulls
+    no harder however far it stretches), so the table runs to a strain of 2, twice any fibre's
+    rupture, with ``points`` pairs in the quadratic toe and the exact straight lines either side."""
+    strain = np.concatenate([[-0.9], np.linspace(0.0, TRANSITION_STRAIN, points), [2.0]])
+    force = np.where(strain <= 0, SLACK_SLOPE * stiffness_n * strain, ligament_force(stiffness_n, strain))
+    return [(float(f), float(slack_mm * (1.0 + e) - length_mm)) for f, e in zip(force, strain)]
+
+
+# -- the quadriceps ----------------------------------------------------------------------------
+#: Where the quadriceps pulls from: this far up the femoral shaft (deck Z), mm; the origin belongs to
+#: the femur, so the muscle pulls the patella into the trochlea without pushing the femur off the tibia.
+QUADRICEPS_ORIGIN_MM = 200.0
+#: How much shorter than its initial length the quadriceps goes slack, mm.
+QUADRICEPS_SLACK_MM = 5.0
+#: Where it pulls on the patella: this far up the patella's proximal axis from its frame's origin, mm.
+QUADRICEPS_POLE_MM = 15.0
+
+
+def quadriceps_table(force_n: float, length_mm: float) -> list[tuple[float, float]]:
+    """(force N, elongation mm) of the quadriceps: ``force_n`` at its initial length, +1 N/mm as it
+    lengthens, falling to 0 over :data:`QUADRICEPS_SLACK_MM` of shortening."""
+    return [(-SLACK_SLOPE * force_n, -length_mm), (0.0, -QUADRICEPS_SLACK_MM), (force_n, 0.0),
+            (force_n + length_mm, length_mm)]
+
+
+# -- loads -------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class LoadCase:
+    """What a run asks of the knee.
+
+    The tibia is held; the joint load pushes the femur down the tibial axis (on its reference node, at
+    the femoral frame's origin); the quadriceps pulls the patella towards its origin up the femoral shaft;
+    the femur is then flexed about the flexion axis (deck X) to ``flexion_deg``, at most
+    ``max_increment_deg`` an increment, the loads held."""
+
+    joint_load_n: float = 1000.0
+    quadriceps_n: float = 300.0
+    flexion_deg: float = 90.0
+    max_increment_deg: float = 3.0
+    cartilage: Literal["rigid", "deformable"] = "rigid"
+    menisci: bool = True  # the meniscus surrogates (fe/menisci.py)
+    prefemoral: bool = True  # the patella's rest above the trochlea (fe/prefemoral.py)
+
+
+#: The smoke run: flexion and largest increment, deg (two increments: the sample's run took 53 s of CPU
+#: in three of 5 deg, 43 s in two, with the same contact at 15 deg within 3 % of force).
+SMOKE_FLEXION_DEG, SMOKE_INCREMENT_DEG = 15.0, 7.5
+
+# -- boundary conditions and restraints ----------------------------------------------------------
+#: The body held still (every node of it, all translations).
+FIXED_BODY = "tibia"
+#: The bodies that move: rigid bodies with a reference node (translations) and rotations.
+MOVING_BODIES = ("femur", "patella")
+#: The driven degree of freedom: the femur's rotation about deck X, the flexion axis.
+FLEXION = ("femur", "rotation", 0)
+
+
+@dataclass(frozen=True)
+class Restraint:
+    """A linear spring on one degree of freedom of a moving body, to the ground or to another body.
+
+    ``kind`` translation (N/mm, of the body's reference node) or rotation (N mm/rad); ``axis`` 0, 1, 2
+    for deck X, Y, Z; ``to`` None (the ground) or the body it ties to (for a translation, the node of
+    that body where the moving body's reference node starts)."""
+
+    body: str
+    kind: Literal["translation", "rotation"]
+    axis: int
+    stiffness: float
+    to: str | None = None
+
+
+#: Weak springs on the free degrees of freedom, to keep the solve regular before contact closes:
+#: N/mm and N mm/rad.
+STABILISER_N_MM, STABILISER_NMM_RAD = 5.0, 2000.0
+#: Internal-external rotational restraint of the femur, N mm/rad (60 N m/rad, about 1 N m/deg, the
+#: order of a knee's measured torsional stiffness near neutral): the capsule and the meniscal horns,
+#: which the model leaves out.  Without it the femur of the sample knee rotated 18-41 deg externally by
+#: 27-45 deg of flexion and left the lateral plate (the paper's model controlled this degree of freedom
+#: with an applied torque).
+IE_RESTRAINT_NMM_RAD = 60000.0
+#: Anterior-posterior restraint of the femur (deck Y), N/mm: the secondary AP restraints the model leaves
+#: out (meniscal horns, capsule), the order of a knee's anterior drawer stiffness.
+AP_RESTRAINT_N_MM = 40.0
+#: The patella's tilt and spin restraint relative to the femur (deck Y and Z rotations), N mm/rad: the
+#: retinacula.  With only the weak stabiliser the sample's patella spun 34 deg by 21 deg of flexion and
+#: left the trochlea.
+PATELLA_ROTATION_NMM_RAD = 30000.0
+
+#: Every restraint of the model, in deck order.  The femur's to the ground (its flexion is driven, not
+#: sprung); the patella's to the femur, which it follows through flexion (grounded, they would pull back a
+#: patella that moves 30-50 mm with the femur: 150-250 N on the sample at 50 deg).
+RESTRAINTS = (
+    Restraint("femur", "translation", 0, STABILISER_N_MM),
+    Restraint("femur", "translation", 1, AP_RESTRAINT_N_MM),
+    Restraint("femur", "translation", 2, STABILISER_N_MM),
+    Restraint("femur", "rotation", 1, STABILISER_NMM_RAD),
+    Restraint("femur", "rotation", 2, IE_RESTRAINT_NMM_RAD),
+    *(Restraint("patella", "translation", axis, STABILISER_N_MM, to="femur") for axis in range(3)),
+    Restraint("patella", "rotation", 0, STABILISER_NMM_RAD, to="femur"),
+    Restraint("patella", "rotation", 1, PATELLA_ROTATION_NMM_RAD, to="femur"),
+    Restraint("patella", "rotation", 2, PATELLA_ROTATION_NMM_RAD, to="femur"),
+)
+
+
+def spring_stiffness(body: str, kind: str, to: str | None = None) -> np.ndarray:
+    """The stiffness (3,) of ``body``'s springs on its ``kind`` degrees of freedom (deck X, Y, Z) to the
+    ground (``to`` None) or to the body ``to``, 0 where it has none: what the results subtract to balance
+    the body's forces."""
+    k = np.zeros(3)
+    for r in RESTRAINTS:
+        if (r.body, r.kind, r.to) == (body, kind, to):
+            k[r.axis] += r.stiffness
+    return k
+
+
+# -- limits a run is judged by -------------------------------------------------------------------
+#: A seating deeper than this share of the tibiofemoral cartilage layers' combined thickness means the
+#: cartilages meet over too small an area to carry the joint load as cartilage: no cartilage is squeezed
+#: by three quarters.  The sample seats at 0.12 (0.51 mm); under the softer E / h law the sample seated
+#: at 0.22 and OAI 9357383_00m at 0.29, and a severity-3 phantom whose medial plate was meshed over 80 %
+#: of its label needed 1.28 (4.1 mm) and did not converge.
+MAX_PRELOAD_STRAIN = 0.75
+#: An increment is trusted only if the femur's forces balance within this fraction of the joint load.
+MAX_BALANCE_ERROR = 0.05
+#: A completed run is physiology only within these (a knee under a 1000 N joint load: cadaver and model
+#: studies put tibiofemoral peaks at a few to 15-20 MPa over hundreds of mm^2, both compartments loaded in
+#: extension).  Tibial plates only: the meniscus surrogates are rigid rings whose edge concentrates
+#: pressure by construction.  The plates' peak over the run, MPa ...
+MAX_PLATE_PEAK_MPA = 20.0
+#: ... each plate's share of the joint load in extension (the end of seating) ...
+MIN_PLATE_SHARE = 0.1
+#: ... and the plates' contact area in extension, mm^2.
+MIN_PLATES_AREA_MM2 = 100.0
