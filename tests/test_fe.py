@@ -180,19 +180,34 @@ def test_a_missing_ccx_and_a_skipped_card_are_clear_errors(tmp_path, monkeypatch
     assert e.value.code == "ccx_missing" and "apt-get install calculix-ccx" in e.value.message
 
 
-def test_a_stalled_run_is_stopped_with_its_reason(tmp_path, monkeypatch):
-    """A run whose increments stop converging (ccx cutting back for ever, as on a chattering contact)
-    is stopped once no increment has converged for the stall time, not at the time limit."""
-    fake = tmp_path / "bin" / "ccx"  # a ccx that converges one increment, then only cuts back
+def _fake_ccx(tmp_path, monkeypatch, body: str):
+    """A ccx on the PATH that writes one converged increment to its .sta, then runs ``body`` (sh)."""
+    fake = tmp_path / "bin" / "ccx"
     fake.parent.mkdir()
     fake.write_text("#!/bin/sh\n[ \"$1\" = -v ] && echo 'Version 2.20' && exit 0\nprintf ' STEP INC ATT ITRS TOT TIME STEP TIME INC TIME\\n 1 1 1 8 0.1E+01 0.1E+01 0.1E+01\\n' > knee_ccx.sta\n"
-                    "while true; do echo ' 2 1 1U 30 0.13E+01 0.33E+00 0.33E+00' >> knee_ccx.sta; sleep 0.2; done\n")
+                    + body)
     fake.chmod(0o755)
     monkeypatch.setenv("PATH", f"{fake.parent}:{os.environ['PATH']}")
+
+
+def test_a_stalled_run_is_stopped_with_its_reason(tmp_path, monkeypatch):
+    """A run whose increments stop converging (ccx cutting back for ever, as on a chattering contact, busy
+    all the while) is stopped once it has spent the stall time's CPU without a converged increment, not at
+    the time limit."""
+    _fake_ccx(tmp_path, monkeypatch, "while true; do echo ' 2 1 1U 30 0.13E+01 0.33E+00 0.33E+00' >> knee_ccx.sta; "
+                                     "i=0; while [ $i -lt 20000 ]; do i=$((i+1)); done; done\n")
     (tmp_path / "knee_ccx.sta").write_text(" 1 1 1 8 0.5E+01 0.5E+01 0.5E+01\n")  # an earlier run's: not progress
-    run = run_ccx(tmp_path, "knee_ccx", timeout_s=60, stall_s=3)
-    assert not run.completed and run.reason.startswith("stalled: no increment converged in 3 s after step time 1")
-    assert run.seconds < 10
+    run = run_ccx(tmp_path, "knee_ccx", timeout_s=60, stall_s=2)
+    assert not run.completed and run.reason.startswith("stalled: no increment converged in 2 s of CPU time after step time 1")
+    assert run.seconds < 15
+
+
+def test_a_run_waiting_for_the_cores_is_not_stalled(tmp_path, monkeypatch):
+    """A run that makes no progress because it gets no CPU (the cores busy with other runs) is not stalled:
+    here it waits six seconds, three times the stall time, using no CPU, then converges and finishes."""
+    _fake_ccx(tmp_path, monkeypatch, "sleep 6\necho ' 2 1 1 5 0.2E+01 0.1E+01 0.1E+01' >> knee_ccx.sta\necho ' Job finished'\n")
+    run = run_ccx(tmp_path, "knee_ccx", timeout_s=60, stall_s=2)
+    assert run.completed, run.reason
 
 
 @pytest.fixture(scope="module")

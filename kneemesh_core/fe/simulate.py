@@ -46,14 +46,26 @@ def ccx_version(exe: str) -> str | None:
 CCX_THREADS = max(1, min(2, os.cpu_count() or 1))
 
 
-#: A run whose last converged increment is older than this (s) has stalled and is stopped: when a
-#: contact's active set cycles between two states, ccx cuts the increment back and retries for ever
-#: (OAI 9357383_00m: its patella's tip touching the trochlea's edge, 115 contact elements on and off
-#: at every iteration, 25 min on the smoke run between 6.6 and 6.7 deg).  Converging increments take
-#: 10-60 s on one contended thread.
-STALL_S = 300.0
+#: A run that has used this much CPU time (s, all its threads) since its last converged increment has
+#: stalled and is stopped: when a contact's active set cycles between two states, ccx cuts the increment
+#: back and retries for ever (OAI 9357383_00m: its patella's tip touching the trochlea's edge, 115 contact
+#: elements on and off at every iteration, 25 min on the smoke run between 6.6 and 6.7 deg).  Converging
+#: increments take 10-60 s of one thread.  CPU time, not wall time: a run that shares the cores with
+#: others waits without progress and is not stalled (a wall-clock limit stopped a healthy run at 0 deg
+#: while four processes shared the two cores).
+STALL_CPU_S = 600.0
 #: How often the .sta file is read while ccx runs, s.
 POLL_S = 1.0
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """CPU time (s, user and system, every thread, and its children that have ended) a running process has
+    used, from ``/proc``; None where there is no ``/proc`` (the stall check then falls back to wall time)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return sum(int(x) for x in fields[11:15]) / os.sysconf("SC_CLK_TCK")
 
 
 def last_converged(sta: Path) -> float | None:
@@ -71,9 +83,38 @@ def last_converged(sta: Path) -> float | None:
     return None
 
 
-def run_ccx(folder: Path, job: str = "knee_ccx", timeout_s: float = 1800.0, stall_s: float = STALL_S) -> Run:
-    """Run ``ccx -i job`` in ``folder`` on :data:`CCX_THREADS` threads under a time limit, stopping it
-    when no increment has converged for ``stall_s`` seconds (:data:`STALL_S`).
+def _watch(p: subprocess.Popen, sta: Path, t0: float, timeout_s: float, stall_s: float) -> str | None:
+    """Wait for ccx, reading its ``.sta`` every :data:`POLL_S`; kill it at the time limit or once it has
+    used ``stall_s`` CPU seconds (wall seconds where ``/proc`` is missing) since its last converged
+    increment, and say why; None when it ended by itself."""
+    progress, since = None, None
+    while True:
+        try:
+            p.wait(timeout=POLL_S)
+            return None
+        except subprocess.TimeoutExpired:
+            pass
+        now = time.perf_counter()
+        cpu, converged = cpu_seconds(p.pid), last_converged(sta)
+        clock = now if cpu is None else cpu
+        if since is None or converged != progress:
+            progress, since = converged, clock
+        stopped = None
+        if now - t0 > timeout_s:
+            stopped = f"stopped at the time limit of {timeout_s:g} s"
+        elif clock - since > stall_s:
+            stopped = (f"stalled: no increment converged in {stall_s:g} s of {'wall' if cpu is None else 'CPU'} time after "
+                       f"step time {progress or 0:g} (ccx cutting the increment back again and again, as when a contact "
+                       "keeps switching on and off)")
+        if stopped:
+            p.kill()
+            p.wait()
+            return stopped
+
+
+def run_ccx(folder: Path, job: str = "knee_ccx", timeout_s: float = 1800.0, stall_s: float = STALL_CPU_S) -> Run:
+    """Run ``ccx -i job`` in ``folder`` on :data:`CCX_THREADS` threads under a time limit (wall, s), stopping
+    it when it has used ``stall_s`` seconds of CPU (:data:`STALL_CPU_S`) since its last converged increment.
 
     Raises ``ccx_missing`` when ccx is not installed and ``deck_skipped`` when ccx skipped part
     of the deck; a run that stops early (no convergence, stalled, time limit) is returned with its reason.
@@ -85,28 +126,9 @@ def run_ccx(folder: Path, job: str = "knee_ccx", timeout_s: float = 1800.0, stal
     env = {**os.environ, "OMP_NUM_THREADS": str(CCX_THREADS)}
     log_path, sta = folder / f"{job}.log", folder / f"{job}.sta"
     sta.unlink(missing_ok=True)  # a .sta of an earlier run would read as progress
-    stopped = None
     with log_path.open("w") as log_file:
         p = subprocess.Popen([exe, "-i", job], cwd=folder, stdout=log_file, stderr=subprocess.STDOUT, env=env)
-        progress, since = None, t0
-        while True:
-            try:
-                p.wait(timeout=POLL_S)
-                break
-            except subprocess.TimeoutExpired:
-                pass
-            now, converged = time.perf_counter(), last_converged(sta)
-            if converged != progress:
-                progress, since = converged, now
-            if now - t0 > timeout_s:
-                stopped = f"stopped at the time limit of {timeout_s:g} s"
-            elif now - since > stall_s:
-                stopped = (f"stalled: no increment converged in {stall_s:g} s after step time {progress or 0:g} (ccx "
-                           "cutting the increment back again and again, as when a contact keeps switching on and off)")
-            if stopped:
-                p.kill()
-                p.wait()
-                break
+        stopped = _watch(p, sta, t0, timeout_s, stall_s)
     rc, log = p.returncode, log_path.read_text(errors="replace")
     if stopped:
         return Run(False, stopped, time.perf_counter() - t0, log, ccx_version(exe))
