@@ -230,12 +230,18 @@ def test_compare_reproduces_known_answers(tmp_path):
 
     a, b = tmp_path / "a", tmp_path / "b"
     labels = sitk.GetImageFromArray(np.repeat(np.arange(8, dtype=np.uint8), 4).reshape(2, 4, 4))
-    for folder, r in ((a, 32.0), (b, 32.5)):
+    for folder, r, h in ((a, 32.0, 1.0), (b, 32.5, 1.13)):
         (folder / "meshes").mkdir(parents=True)
         _cap(r - 2.0).save(folder / "meshes" / "femoral_cartilage.vtu")  # articular surface at r
         sitk.WriteImage(labels, str(folder / "labels.nrrd"))
+        (folder / "report.json").write_text(json.dumps({"tissues": {"femoral_cartilage": {
+            "element_size_mm": h, "element_size_asked_mm": 1.0 if h == 1.0 else 1.5, "coverage": 0.99, "status": "ok"}}}))
     s = compare(a, b, tmp_path / "out")
     assert all(v == 1.0 for v in s["dice"].values())
+    # the same labels, two meshes: compared as meshes (volume and elements measured on the files; size asked and shipped)
+    m = s["meshes"]["femoral_cartilage"]
+    assert m["n_elements"] == [24 * 24 * 3] * 2 and m["element_size_mm"] == [1.0, 1.13]
+    assert m["element_size_asked_mm"] == [1.0, 1.5] and m["volume_ml"][1] > m["volume_ml"][0] > 0
     dev = s["surface_deviation_mm"]["femoral_cartilage"]
     assert dev["coverage"] == 1.0 and dev["median"] == pytest.approx(0.5, abs=0.01) and dev["max"] <= 0.5 + 1e-6
     assert (tmp_path / "out" / "deviation.png").stat().st_size > 5000

@@ -315,6 +315,12 @@ def test_cartilage_thinner_than_the_columns_floor_tries_smaller_elements_first()
     f = mesh_cartilage(labels, "medial_tibial_cartilage").facts
     assert f["attempts"] == ["default", "smaller_elements"] and f["n_layers"] == 4, f["attempts"]
     assert f["gate_passed"] and f["fidelity_passed"] and f["element_size_mm"] < 0.8
+    # the size asked for is not the size that ships: the verdict says so (a mesh-convergence study reads it)
+    from kneemesh_core.job.verdict import tissue_verdict
+
+    status, reasons = tissue_verdict(False, f)
+    assert status == "review" and len(reasons) == 1, reasons
+    assert reasons[0].startswith(f"ships elements of {f['element_size_mm']:.2f} mm, -2") and "smaller_elements" in reasons[0]
 
 
 def test_a_cartilage_too_thin_for_its_layers_is_meshed_in_fewer_and_says_so():

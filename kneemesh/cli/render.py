@@ -6,6 +6,7 @@ from pathlib import Path
 
 from rich.table import Table
 
+from kneemesh_core.hexmesh.targets import ELEMENT_SIZE_TOL
 from kneemesh_core.job import STAGES
 from kneemesh_core.job.stages import TISSUES_SECTION
 from kneemesh_core.tissues import TISSUES
@@ -29,12 +30,13 @@ def inspect_table(title: str, info: dict) -> Table:
 
 def tissue_table(title: str, report: dict) -> Table:
     """One row per tissue of a job's report: status, time, size, volume and the figures of the file that ships."""
-    t = Table(title=title)
-    for col in ("tissue", "status", "s", "elements", "volume ml", "label ml", "quality", "fidelity"):
+    t = Table(title=title, caption="elements, volume, quality and fidelity: the file in meshes/ (a cartilage's mesh before "
+                                   "its edge blend, which the quality gate judged, is under 'gate' in report.json)")
+    for col in ("tissue", "status", "s", "elements", "element mm", "volume ml", "label ml", "quality", "fidelity"):
         t.add_column(col)
     for tissue, e in report[TISSUES_SECTION].items():
         if e["status"] == "failed" and "n_elements" not in e and "n_cells" not in e:  # no mesh at all
-            t.add_row(tissue, STATUS["failed"], f"{e['seconds']:.1f}", "", "", "", "", e["reason"])
+            t.add_row(tissue, STATUS["failed"], f"{e['seconds']:.1f}", "", "", "", "", "", e["reason"])
             continue
         if "n_elements" in e:  # hex cartilage
             quality = f"min SJ {e['min_scaled_jacobian']:.2f}, {e['frac_sj_below_0_5']:.2%} < 0.5"
@@ -42,12 +44,15 @@ def tissue_table(title: str, report: dict) -> Table:
             if rim := e.get("blend", {}).get("beyond_rim"):  # the blended file; beyond the rim its blend reshapes
                 fid += f" (beyond the blended rim {rim['coverage']:.1%}, {rim['surface_deviation_mm']['p95']:.2f} mm)"
             count = str(e["n_elements"])
+            h, asked = e["element_size_mm"], e.get("element_size_asked_mm")
+            size = f"{h:.2f}" + (f" [yellow](asked {asked:g})[/]" if asked and abs(h / asked - 1) > ELEMENT_SIZE_TOL else "")
         else:  # bone shell
             closed = "closed, manifold" if e["watertight"] and e["manifold"] else "[red]open[/]"
-            quality = f"{closed}, edge {e['edge_mm']['mean']:.1f} mm"
+            quality = closed
             fid = f"dist {e['surface_distance_mm']['mean']:.2f}/{e['surface_distance_mm']['p95']:.2f} mm"
             count = str(e["n_cells"])
-        t.add_row(tissue, STATUS.get(e["status"], e["status"]), f"{e['seconds']:.1f}", count, f"{e['volume_ml']:.2f}",
+            size = f"{e['edge_mm']['mean']:.1f}"
+        t.add_row(tissue, STATUS.get(e["status"], e["status"]), f"{e['seconds']:.1f}", count, size, f"{e['volume_ml']:.2f}",
                   f"{e['label_volume_ml']:.2f}", quality, fid)
     return t
 
@@ -83,15 +88,21 @@ def verdict_lines(report: dict, out_dir: Path) -> str:
 
 def compare_table(title: str, s: dict) -> Table:
     """Two results of one knee (:func:`kneemesh.cohort.compare.compare`): Dice and surface deviation per tissue."""
-    t = Table(title=title)
-    for col in ("tissue", "Dice", "deviation median / p75 / max mm", "coverage"):
+    t = Table(title=title, caption="Dice compares the two label maps; the other columns the two meshes, A / B")
+    for col in ("tissue", "Dice", "deviation median / p75 / max mm", "nodal coverage", "volume ml", "elements",
+                "element mm"):
         t.add_column(col)
-    dev = s["surface_deviation_mm"]
+    dev, meshes = s["surface_deviation_mm"], s.get("meshes", {})
     for tissue, d in s.get("dice", {}).items():
-        row = dev.get(tissue)
+        row, m = dev.get(tissue), meshes.get(tissue)
+
+        def pair(key: str, fmt: str) -> str:
+            return "" if not m else " / ".join("" if v is None else format(v, fmt) for v in m[key])
+
         t.add_row(tissue, "" if d is None else f"{d:.3f}",
                   "" if not row or row["median"] is None else f"{row['median']:.2f} / {row['p75']:.2f} / {row['max']:.2f}",
-                  "" if not row else f"{row['coverage']:.1%}")
+                  "" if not row else f"{row['coverage']:.1%}", pair("volume_ml", ".2f"), pair("n_elements", "d"),
+                  pair("element_size_mm", ".2f"))
     return t
 
 

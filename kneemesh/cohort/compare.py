@@ -1,5 +1,6 @@
 """``kneemesh compare A B --out DIR``: two results of one knee side by side (``compare.json``,
-``deviation.png``, ``contact.png``); the measures are :mod:`kneemesh_core.metrics.compare`."""
+``deviation.png``, ``contact.png``): the labels (Dice), the meshes (articular surface deviation, volume,
+elements and their size, coverage) and the contact; the measures are :mod:`kneemesh_core.metrics.compare`."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.fe.results import loaded
 from kneemesh_core.fe.run import RESULT_FILES
 from kneemesh_core.io.files import atomic_write_text
-from kneemesh_core.job.outputs import LABELS_FILE, MESHES_DIR
+from kneemesh_core.job.outputs import LABELS_FILE, MESHES_DIR, REPORT_FILE
 from kneemesh_core.metrics.compare import contact_differences, surface_deviation
 from kneemesh_core.metrics.labels import dice
 from kneemesh_core.tissues import CARTILAGES
@@ -36,11 +37,15 @@ def compare(a: Path, b: Path, out: Path) -> dict:
     if (a / LABELS_FILE).exists() and (b / LABELS_FILE).exists():
         summary["dice"] = {t: None if d is None else round(d, 5) for t, d in
                            dice(sitk.ReadImage(str(a / LABELS_FILE)), sitk.ReadImage(str(b / LABELS_FILE))).items()}
-    deviations = {}
+    deviations, meshes = {}, {}
+    reports = [_results(folder, REPORT_FILE) or {} for folder in (a, b)]
     for t in CARTILAGES:
         fa, fb = a / MESHES_DIR / f"{t}.vtu", b / MESHES_DIR / f"{t}.vtu"
         if fa.exists() and fb.exists():
-            deviations[t] = surface_deviation(pv.read(fa), pv.read(fb))
+            ga, gb = pv.read(fa), pv.read(fb)
+            deviations[t] = surface_deviation(ga, gb)
+            meshes[t] = _mesh_figures(t, (ga, gb), reports)
+    summary["meshes"] = meshes
     summary["surface_deviation_mm"] = {t: {k: v for k, v in d.items() if k != "distances_mm"} for t, d in deviations.items()}
     kind = next((n for n in RESULT_FILES if (a / n).exists() and (b / n).exists()), None)
     if kind:
@@ -52,6 +57,15 @@ def compare(a: Path, b: Path, out: Path) -> dict:
         _plot_deviation(deviations, out / "deviation.png")
     atomic_write_text(out / "compare.json", json.dumps(summary, indent=1))
     return summary
+
+
+def _mesh_figures(tissue: str, grids: tuple[pv.UnstructuredGrid, pv.UnstructuredGrid], reports: list[dict]) -> dict:
+    """The two meshes of one cartilage side by side, [A, B]: volume (ml) and elements measured on the files, the
+    in-plane element size that shipped and the size asked for, the coverage of each label's cartilage (from
+    their reports: a Dice of the labels compares nothing when both meshings read the same labels)."""
+    entries = [r.get("tissues", {}).get(tissue, {}) for r in reports]
+    return {"volume_ml": [round(g.volume / 1000.0, 4) for g in grids], "n_elements": [g.n_cells for g in grids],
+            **{key: [e.get(key) for e in entries] for key in ("element_size_mm", "element_size_asked_mm", "coverage", "status")}}
 
 
 def _plot_deviation(deviations: dict, path: Path) -> None:

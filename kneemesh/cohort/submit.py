@@ -131,11 +131,12 @@ def process(knee: Knee, api: Api, state: State, out: Path, options: dict, poll_s
                 raise Stopped(knee.id)
         fields = {"job_state": job["state"], "verdict": (job.get("verdict") or {}).get("status"),
                   "reasons": (job.get("verdict") or {}).get("reasons", []), "tissues_failed": job.get("tissues_failed", []),
-                  "job_seconds": sum(s.get("seconds") or 0.0 for s in job.get("steps", []))}
-        if job["state"] != "succeeded":
+                  "job_seconds": round(sum(s.get("seconds") or 0.0 for s in job.get("steps", [])), 1)}
+        if job["state"] != "succeeded" and not (job["state"] == "failed" and job.get("verdict")):
             err = job.get("error") or {}
             return state.update(knee.id, state=FAILED, reason=f"job {job['state']}: {err.get('code', '')} {err.get('message', '')}".strip(),
                                 **fields)
+        # (a job whose every step ran ends failed when the knee's verdict is failed: its files still come home)
         manifest = _bring_home(api, job_id, folder)
         return state.update(knee.id, state=DONE, manifest=manifest, reason=None,
                             client_seconds=round(time.time() - rec.get("submitted_at", t0), 1), **fields)
@@ -179,6 +180,7 @@ def _tissue_columns(report: dict) -> dict:
         r = report.get("tissues", {}).get(t, {})
         cols[f"{t}_status"] = r.get("status", "")
         if t in CARTILAGES:
+            cols[f"{t}_element_size_mm"] = r.get("element_size_mm", "")
             cols[f"{t}_min_sj"] = r.get("min_scaled_jacobian", "")
             cols[f"{t}_coverage"] = r.get("coverage", "")
             cols[f"{t}_volume_error"] = r.get("volume_error", "")

@@ -395,9 +395,10 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
     facts = {
         "n_layers": layers,
         # (the layers that fit are judged for the element size asked; a fallback may ship smaller elements)
-        **({"layers_asked": opts.layers, "fewer_layers_because": fewer_because, "element_size_asked_mm": opts.element_size,
+        **({"layers_asked": opts.layers, "fewer_layers_because": fewer_because,
             "median_thickness_mm": round(median_thickness(best.footprint), 3)} if layers != opts.layers else {}),
         "element_size_mm": round(float(np.median(_inplane_edges(best.mesh))), 4),
+        "element_size_asked_mm": opts.element_size,
         **best.summary,
         **best.fidelity,
         "discarded_ml": round(best.mask.discarded_ml, 4),

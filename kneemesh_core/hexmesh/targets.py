@@ -39,6 +39,9 @@ VOLUME_TOL = 0.05
 #: Articular nodes' distance to the reconstructed surface, mm: median and 95th percentile.
 MAX_DEVIATION_MEDIAN_MM = 0.15
 MAX_DEVIATION_P95_MM = 0.5
+#: The in-plane element size that ships within this fraction of the size asked for (a fallback with
+#: smaller elements meets the other targets at the cost of the size a mesh-convergence study asked for).
+ELEMENT_SIZE_TOL = 0.10
 #: An attempt further off the label's volume than this is no mesh of the cartilage at all.
 MAX_ATTEMPT_VOLUME_ERROR = 0.5
 #: Every column keeps a floor of layers x element / EDGE_RATIO_AIM (no element beyond the edge ratio), so

@@ -9,9 +9,9 @@ misses a fidelity or plausibility target; ``failed`` means there is no usable fi
 from __future__ import annotations
 
 from kneemesh_core.hexmesh.fidelity import FIGURES, fidelity_checks
-from kneemesh_core.hexmesh.targets import (FUSED_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM, MAX_EDGE_RATIO,
-                                           MAX_FRAC_EDGE_RATIO, MIN_COVERAGE, MIN_SCALED_JACOBIAN, USABLE_FRAC_BELOW,
-                                           USABLE_FRAC_EDGE_RATIO, USABLE_MIN_SCALED_JACOBIAN, VOLUME_TOL)
+from kneemesh_core.hexmesh.targets import (ELEMENT_SIZE_TOL, FUSED_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM,
+                                           MAX_EDGE_RATIO, MAX_FRAC_EDGE_RATIO, MIN_COVERAGE, MIN_SCALED_JACOBIAN,
+                                           USABLE_FRAC_BELOW, USABLE_FRAC_EDGE_RATIO, USABLE_MIN_SCALED_JACOBIAN, VOLUME_TOL)
 from kneemesh_core.surfaces.targets import MAX_MEAN_DISTANCE_MM, MAX_P95_DISTANCE_MM
 
 OK, REVIEW, FAILED = "ok", "review", "failed"
@@ -60,6 +60,12 @@ def cartilage_reasons(e: dict) -> list[str]:
         else:
             out.append(fewer + f"the cartilage (median {e['median_thickness_mm']} mm thick) is too thin for "
                        f"{e['layers_asked']} layers of {e['element_size_asked_mm']:g} mm elements within the edge-ratio target")
+    h, asked = e.get("element_size_mm"), e.get("element_size_asked_mm")
+    if h is not None and asked and abs(h / asked - 1.0) > ELEMENT_SIZE_TOL:
+        fallback = ", ".join(e.get("fallbacks") or [])
+        why = f"the fallback {fallback} met the other targets with them" if fallback else "its median in-plane edge"
+        out.append(f"ships elements of {h:.2f} mm, {h / asked - 1.0:+.0%} off the {asked:g} mm asked for "
+                   f"(target: within {ELEMENT_SIZE_TOL:.0%}): {why}")
     # the fidelity targets judge the mesh before its edge blend (its figures under "gate" once the
     # headline figures are the shipped file's), and the blended file beyond the rim the blend reshapes
     swept = {**e, **{k: gate[k] for k in FIGURES if k in gate}}
