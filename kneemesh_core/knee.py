@@ -121,6 +121,7 @@ def canonicalise(
     vol: Volume,
     convention: LabelConvention | None = None,
     side: str | None = None,
+    require_knee: bool = False,
 ) -> Knee:
     """Map a label map of any convention to canonical labels, deciding the side.
 
@@ -131,6 +132,8 @@ def canonicalise(
     convention : LabelConvention or None
         ``None`` to auto-detect (error if ambiguous).
     side : ``"left"``, ``"right"`` or None to detect.
+    require_knee : refuse labels without a femur and a tibia (``not_a_knee``, :data:`REQUIRED`) before the
+        side is decided.
     """
     image = vol.image
     arr = sitk.GetArrayViewFromImage(image)
@@ -139,6 +142,8 @@ def canonicalise(
         convention = detect_convention(counts, voxel_volume_ml(image))
     check_convention(convention, counts, vol.source)
     canon = _canonical_values(arr, convention, vol.source)
+    if require_knee:
+        _check_is_knee(canon, image, convention, vol.source)
     evidence = _side_evidence(image, arr, canon, convention)
     decision = side_mod.decide(explicit=side, dicom_meta=vol.meta, filename=Path(vol.source).name,
                                **{k: v for k, v in evidence.items() if k not in ("merged", "coarse")})
@@ -235,6 +240,24 @@ def describe_image(image: sitk.Image, source: str) -> dict:
         "orientation": sitk.DICOMOrientImageFilter.GetOrientationFromDirectionCosines(image.GetDirection()),
         "direction": [round(v, 6) for v in image.GetDirection()],
     }
+
+
+#: What a label map must hold to be meshed as a knee: the cartilage is meshed on its bone, the knee's
+#: frames and side come from the femur and the tibia.
+REQUIRED = ("femur", "tibia")
+
+
+def _check_is_knee(canon: np.ndarray, image: sitk.Image, convention: LabelConvention, source: str) -> None:
+    """Refuse labels (canonical values, (z, y, x)) that are no knee (``not_a_knee``): the femur or the tibia
+    missing, saying what was found."""
+    counts, vml = label_counts(canon), voxel_volume_ml(image)
+    volumes = {t: counts.get(LABEL[t], 0) * vml for t in TISSUES}
+    missing = [t for t in REQUIRED if volumes[t] <= 0]
+    if missing:
+        found = ", ".join(f"{t.replace('_', ' ')} {v:.2f} ml" for t, v in volumes.items() if v > 0) or "no tissue"
+        raise KneeMeshError("not_a_knee", f"{Path(source).name}: no {' and no '.join(missing)} among its labels as "
+                            f"read with the {convention.name!r} convention (found: {found}); expected a knee label map "
+                            "with at least the femur and the tibia labelled (another --preset or --labels mapping?).")
 
 
 def describe(knee: Knee) -> dict:

@@ -116,14 +116,16 @@ class Jobs:
         except (FileNotFoundError, json.JSONDecodeError):
             return None
 
-    @staticmethod
-    def state(rec: JobRecord, steps: list[dict]) -> str:
+    def state(self, rec: JobRecord, steps: list[dict]) -> str:
+        """``failed`` when a step failed or every step ran and the knee's verdict is ``failed`` (its files, the
+        report among them, can still be downloaded); ``succeeded`` when every step ran and the verdict is ``ok``
+        or ``review``; else ``cancelled``, ``running`` or ``queued``."""
         if rec.cancelled:
             return "cancelled"
         if any(s["state"] == "failed" for s in steps):
             return "failed"
         if steps and all(s["state"] == "done" for s in steps):
-            return "succeeded"
+            return "failed" if (self.verdict(rec) or {}).get("status") == "failed" else "succeeded"
         if any(s["state"] != "pending" for s in steps if s["step"] != INGEST):
             return "running"
         return "queued"

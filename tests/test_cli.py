@@ -104,3 +104,50 @@ def test_every_job_option_is_a_flag_and_a_form_field():
     assert form["element_size"]["minimum"] == 0.2 and form["element_size"]["maximum"] == 5.0
     r = run("mesh", SAMPLE, "--out", "unused", "--element-size", "0.1")
     assert r.returncode == 2 and "element_size" in r.stderr and "0.2" in r.stderr
+
+
+def test_input_that_is_no_knee_is_refused_saying_what_was_found(tmp_path):
+    """A label map of a ball and two boxes, and an MRI sent as a label map: each refused before anything is
+    written, with what was found and what is expected."""
+    import numpy as np
+    import SimpleITK as sitk
+
+    arr = np.zeros((40, 64, 64), np.uint8)
+    z, y, x = np.mgrid[:40, :64, :64]
+    arr[(z - 20) ** 2 + (y - 20) ** 2 + (x - 20) ** 2 < 100] = 1
+    arr[5:15, 40:60, 5:25] = 2
+    arr[25:35, 40:60, 40:60] = 3
+    toy = tmp_path / "toy.nrrd"
+    sitk.WriteImage(sitk.GetImageFromArray(arr), str(toy))
+    r = run("mesh", toy, "--out", tmp_path / "toy", "--preset", "imorphics")
+    assert r.returncode == 2 and "error (not_a_knee)" in r.stderr, r.stderr
+    assert "no femur and no tibia" in r.stderr and "found: femoral cartilage" in r.stderr
+    assert not (tmp_path / "toy").exists()
+    mri = tmp_path / "mri.nrrd"
+    sitk.WriteImage(sitk.GetImageFromArray((np.random.default_rng(0).random((40, 64, 64)) * 3000).astype(np.uint16)), str(mri))
+    r = run("mesh", mri, "--out", tmp_path / "mri")
+    assert r.returncode == 2 and "error (unknown_labels)" in r.stderr and "input_type=image" in r.stderr, r.stderr
+
+
+def test_an_implausible_segmentation_stops_before_meshing_unless_forced(tmp_path):
+    """An image that is no knee (noise): its segmentation fails the plausibility checks, the job stops with
+    the reasons before meshing, the labels kept for a look; forced, it goes on to mesh them."""
+    import numpy as np
+    import pytest
+    import SimpleITK as sitk
+
+    from kneemesh_core.segmentation.infer import DEFAULT_MODEL
+
+    if not DEFAULT_MODEL.exists():
+        pytest.skip("no shipped segmentation model")
+    noise = sitk.GetImageFromArray((np.random.default_rng(1).random((48, 96, 96)) * 400).astype(np.int16))
+    noise.SetSpacing((0.7, 0.7, 1.5))
+    image = tmp_path / "noise.nii.gz"
+    sitk.WriteImage(noise, str(image))
+    r = run("run", image, "--out", tmp_path / "job", "--side", "right", "--workers", "1")
+    assert r.returncode == 2 and "error (implausible_segmentation)" in r.stderr and "--force" in r.stderr, r.stderr
+    assert (tmp_path / "job" / "labels.nrrd").exists() and not (tmp_path / "job" / "meshes").exists()
+    r = run("run", image, "--out", tmp_path / "forced", "--side", "right", "--workers", "1", "--force", "--only", "bones")
+    assert "implausible_segmentation" not in r.stderr and (tmp_path / "forced" / "report.json").exists(), r.stderr
+    report = json.loads((tmp_path / "forced" / "report.json").read_text())
+    assert report["segmentation"]["status"] == "review" and report["verdict"]["status"] != "ok"

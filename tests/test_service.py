@@ -20,6 +20,8 @@ from fastapi.testclient import TestClient
 
 from conftest import OAI, PYMSKT_RIGHT, SAMPLE, real
 from kneemesh_core.hexmesh import targets as T
+from kneemesh_core.knee import load_knee
+from kneemesh_core.tissues import LABEL
 from kneemesh_core.segmentation.infer import DEFAULT_MODEL
 from service_helpers import RedisServer, Worker, free_port, poll, wait_for
 from services.api import create_app
@@ -129,6 +131,30 @@ def test_image_job_is_segmented_by_a_worker_then_meshed(stack, tmp_path):
     assert report["input"]["side"] == "left" and report["input"]["segmentation"]["model"] == DEFAULT_MODEL.name
 
 
+def test_a_knee_whose_verdict_is_failed_ends_failed_with_its_files(stack, tmp_path):
+    """A job whose every step ran but whose knee has a failed tissue (a patellar cartilage of a few voxels)
+    ends in state failed, its verdict saying why, and its files can still be downloaded."""
+    knee = load_knee(real(SAMPLE))
+    arr = sitk.GetArrayFromImage(knee.labels)
+    pc = np.argwhere(arr == LABEL["patellar_cartilage"])
+    arr[arr == LABEL["patellar_cartilage"]] = LABEL["patella"]
+    arr[tuple(pc[:12].T)] = LABEL["patellar_cartilage"]  # a speck
+    speck = sitk.GetImageFromArray(arr)
+    speck.CopyInformation(knee.labels)
+    path = tmp_path / "speck_right.nrrd"
+    sitk.WriteImage(speck, str(path))
+    c = stack.client
+    r = upload(c, path, only="cartilage", preset="kneemesh")
+    assert r.status_code == 202, r.text
+    status = poll(c, r.json()["id"], headers=A)
+    assert status["state"] == "failed" and status["verdict"]["status"] == "failed", status
+    assert status["tissues_failed"] == ["patellar_cartilage"] and status["error"] is None
+    assert any(reason.startswith("patellar_cartilage: failed") for reason in status["verdict"]["reasons"])
+    names = {a["name"] for a in c.get(status["urls"]["artifacts"], headers=A).json()["artifacts"]}
+    assert {"report.json", "bundle.zip", "meshes/femoral_cartilage.vtu"} <= names
+    assert c.get(status["urls"]["bundle"], headers=A).status_code == 200
+
+
 def test_worker_killed_mid_job_loses_nothing(stack):
     c = stack.client
     job = upload(c, SAMPLE).json()
@@ -210,6 +236,10 @@ def test_bad_uploads_are_refused_clearly_and_queue_nothing(stack, tmp_path):
         assert r.status_code == status, (what, r.text)
         body = r.json()
         assert body["message"] and (code is None or body["code"] == code), (what, body)
+    toy = np.zeros((20, 30, 30), np.uint8)  # a ball and a box: read as cartilage labels, no bones
+    toy[5:15, 5:15, 5:15], toy[2:6, 20:28, 20:28] = 1, 2
+    r = upload(c, _image(toy, tmp_path / "toy.nrrd"), preset="imorphics")
+    assert r.status_code == 422 and r.json()["code"] == "not_a_knee" and "no femur" in r.json()["message"]
     r = upload(c, _image(np.ones((64, 64), np.float32), tmp_path / "slice_image.nrrd"), input_type="image")
     assert r.status_code == 422 and r.json()["code"] == "not_3d"
     r = upload(c, SAMPLE, layers="0")

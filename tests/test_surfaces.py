@@ -9,6 +9,7 @@ import pytest
 import SimpleITK as sitk
 
 from conftest import OAI, PYMSKT_LEFT, SAMPLE, real
+from kneemesh_core import KneeMeshError
 from kneemesh_core.io import voxel_to_lps, write_image
 from kneemesh_core.knee import load_knee
 from kneemesh_core.job import JobOptions, run
@@ -104,16 +105,17 @@ def test_job_isolates_failures_and_cartilage_only_labels_fail_clearly(tmp_path):
     for key in ("status", "reason", "seconds"):
         assert key in on_disk["tissues"]["patella"]
 
-    # cartilage-only (imorphics) labels: everything that needs a bone says so
+    # cartilage-only (imorphics) labels are no knee to mesh: refused before anything is written, saying what was found
     lut = np.zeros(256, np.uint8)
     lut[[LABEL["femoral_cartilage"], LABEL["lateral_tibial_cartilage"], LABEL["medial_tibial_cartilage"],
          LABEL["patellar_cartilage"]]] = [1, 2, 3, 4]
     im = sitk.GetImageFromArray(lut[knee.array])
     im.CopyInformation(knee.labels)
     path = write_image(im, tmp_path / "imorphics_right.nrrd")
-    report = run(path, tmp_path / "imo", JobOptions(preset="imorphics", only="bones"), workers=1)
-    assert all(report["tissues"][b]["status"] == "failed" for b in BONES)
-    assert "no femur" in report["tissues"]["femur"]["reason"]
+    with pytest.raises(KneeMeshError) as e:
+        run(path, tmp_path / "imo", JobOptions(preset="imorphics", only="bones"), workers=1)
+    assert e.value.code == "not_a_knee" and "no femur and no tibia" in e.value.message
+    assert "femoral cartilage" in e.value.message and not (tmp_path / "imo" / "job.json").exists()
 
 
 def test_cli_mesh_bones_only_with_stl(tmp_path):

@@ -75,6 +75,7 @@ MESH_FLAGS = {
     "blend_angle": (Optional[float], job_option("blend_angle", "--blend-angle")),
     "simulate": (Optional[str], job_option("simulate", "--simulate")),
     "fe_cartilage": (Optional[str], job_option("fe_cartilage", "--fe-cartilage")),
+    "force": (Optional[bool], job_option("force", "--force/--no-force")),
 }
 
 

@@ -223,14 +223,15 @@ def read_label_map(path: str | os.PathLike, *, max_voxels: int = MAX_VOXELS) -> 
         if not finite or not np.all(np.mod(arr, 1) == 0):
             raise KneeMeshError(
                 "float_labels",
-                f"{name}: the voxels are non-integer floats (a probability map or an interpolated label map?); "
-                "expected integer tissue labels.",
+                f"{name}: the voxels are non-integer floats (a probability map, an interpolated label map, an MRI?); "
+                "expected integer tissue labels. An MRI is sent as an image: `kneemesh run` (the API: input_type=image).",
             )
     if arr.min() < 0:
         raise KneeMeshError("unknown_labels", f"{name}: negative label values; expected labels >= 0.")
     if arr.max() > 255:
         raise KneeMeshError(
-            "unknown_labels", f"{name}: label values up to {int(arr.max())}; expected small integer tissue labels."
+            "unknown_labels", f"{name}: label values up to {int(arr.max())}; expected small integer tissue labels. An MRI, not "
+            "a label map? Send it as an image: `kneemesh run` (the API: input_type=image)."
         )
     if not arr.any():
         raise KneeMeshError("empty_labels", f"{name}: the label map is empty (all voxels 0); expected tissue labels.")

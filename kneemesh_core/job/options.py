@@ -37,6 +37,7 @@ class JobOptions:
     bundle: bool = False
     simulate: str = "none"  # or "smoke" (to 15 deg) or "full" (to 90 deg): a CalculiX run of the decks
     fe_cartilage: str = "rigid"  # or "deformable": the cartilage of the decks
+    force: bool = False  # mesh an image's labels although the segmentation fails its plausibility checks
     surface: SurfaceOptions = SurfaceOptions()
     hex: HexOptions = HexOptions()
     blend: BlendOptions | None = BlendOptions()  # None: keep the step at the cartilage edge
@@ -86,6 +87,9 @@ class JobRequest(BaseModel):
     stl: bool = Field(False, description="Also write the bone shells as .stl.")
     simulate: Literal["none", "smoke", "full"] = Field(
         "none", description="Run the CalculiX deck: smoke (to 15 deg of flexion) or full (to 90 deg); none: write the decks only.")
+    force: bool = Field(False, description="For an image: mesh its labels even where the segmentation fails its "
+                                           "plausibility checks (the knee is then review); otherwise the job stops "
+                                           "before meshing, with the reasons.")
     fe_cartilage: Literal["rigid", "deformable"] = Field(
         "rigid", description="Cartilage in the decks: rigid (the paper's choice; contact stiffness from its layers) or deformable.")
 
@@ -104,6 +108,7 @@ class JobRequest(BaseModel):
         return JobOptions(
             input_type=self.input_type, model=self.model, preset=self.preset, labels=self.labels, side=self.side,
             only=self.only, stl=self.stl, bundle=bundle, simulate=self.simulate, fe_cartilage=self.fe_cartilage,
+            force=self.force,
             surface=SurfaceOptions(bone_edge_mm=self.bone_edge),
             hex=HexOptions(element_size=self.element_size, layers=self.layers),
             blend=BlendOptions(angle_deg=self.blend_angle) if self.blend else None)

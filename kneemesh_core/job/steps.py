@@ -87,7 +87,8 @@ def ingest(step: Step) -> dict:
         SegmentationModel.load(options.model)  # a missing or foreign model fails here, before anything is queued
         description = describe_image(vol.image, vol.source)
     else:
-        knee = canonicalise(read_label_map(step.input), resolve_convention(options.preset, options.labels), options.side)
+        knee = canonicalise(read_label_map(step.input), resolve_convention(options.preset, options.labels), options.side,
+                            require_knee=True)
         description = describe(knee)
     step.out.mkdir(parents=True, exist_ok=True)
     if knee is not None:
@@ -116,6 +117,10 @@ def segment(step: Step) -> dict:
     write_json(step.out / JOB_FILE, job)
     plausibility = figures(result.knee.labels)
     status, reasons = check(plausibility)
+    if status != "ok" and not step.options.force:
+        raise KneeMeshError("implausible_segmentation", "the segmentation is not a plausible knee: " + "; ".join(reasons)
+                            + f". Its labels are in {LABELS_FILE}; nothing was meshed. Force the job (--force, the API: "
+                            "force=true) to mesh them anyway (the knee is then review).")
     return {"status": status, "reasons": reasons, "side": result.knee.side, "seconds": result.seconds["total"],
             "tissues_ml": job["input"]["tissues"], "plausibility": plausibility}
 
@@ -268,7 +273,8 @@ def place_anatomy(step: Step) -> dict:
     out = step.out
 
     def work() -> dict:
-        side = read_json(out / JOB_FILE)["input"]["side"]
+        knee = read_json(out / JOB_FILE)["input"]
+        side, name = knee["side"], Path(knee["source"]).name  # the input's name: a service's job folder is "out"
         bones = {b: pv.read(out / MESHES_DIR / f"{b}.vtp") for b in BONES if (out / MESHES_DIR / f"{b}.vtp").exists()}
         labels = read_label_map(out / LABELS_FILE).image
         arr = sitk.GetArrayViewFromImage(labels)
@@ -278,7 +284,7 @@ def place_anatomy(step: Step) -> dict:
         if anatomy.document:
             write_json(out / ATTACHMENTS_FILE, anatomy.document)
             with atomic_path(out / ATTACHMENTS_FIGURE) as tmp:
-                draw(anatomy.document, anatomy.bones, anatomy.frames, Path(tmp), out.name)
+                draw(anatomy.document, anatomy.bones, anatomy.frames, Path(tmp), name)
             anatomy.report["files"] = [ATTACHMENTS_FILE, ATTACHMENTS_FIGURE]
         return anatomy.report
 

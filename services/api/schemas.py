@@ -59,9 +59,14 @@ class StepProgress(BaseModel):
     error: Error | None = None
 
 
+STATE_MEANING = ("queued: waiting for a worker; running: a step has started; succeeded: every step ran and the knee's "
+                 "verdict is ok or review; failed: a step failed (see `error`), or every step ran and the knee's verdict is "
+                 "failed (see `verdict`; its files can still be downloaded); cancelled: deleted before it finished.")
+
+
 class JobStatus(BaseModel):
     id: str
-    state: State
+    state: State = Field(description=STATE_MEANING)
     created_at: str
     input_name: str
     input_type: str
@@ -124,7 +129,7 @@ class ManifestEntry(BaseModel):
     input_name: str
     state: State
     verdict: Verdict | None = None
-    artifacts: list[Artifact] = Field(description="Every file of the job with its SHA-256 (empty until it has succeeded).")
+    artifacts: list[Artifact] = Field(description="Every file of the job with its SHA-256 (empty until every step has run).")
 
 
 class BatchManifest(BaseModel):

@@ -15,7 +15,8 @@ router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["artifacts"], responses=ERR
 
 @router.get("/artifacts", response_model=schemas.ArtifactList)
 def list_artifacts(request: Request, rec: JobRecord = Depends(deps.own_job), jobs: Jobs = Depends(deps.jobs)):
-    """Every artifact (name, size, SHA-256, URL); available once the job has succeeded."""
+    """Every artifact (name, size, SHA-256, URL); available once every step has run (a job that ended failed for its
+    knee's verdict has them too)."""
     listed = jobs.store.artifacts(rec.id)
     if listed is None:
         raise ApiError(409, "not_ready", f"job {rec.id} has no artifacts yet (state: {jobs.state(rec, jobs.steps(rec))}).")

@@ -71,7 +71,7 @@ def get_batch_manifest(request: Request, batch_id: str, who: str = Depends(deps.
         if rec is None:
             continue
         state = jobs.state(rec, jobs.steps(rec))
-        listed = (jobs.store.artifacts(rec.id) or []) if state == "succeeded" else []
+        listed = (jobs.store.artifacts(rec.id) or []) if state in ("succeeded", "failed") else []
         entries.append(schemas.ManifestEntry(
             id=rec.id, input_name=rec.input_name, state=state, verdict=jobs.verdict(rec),
             artifacts=[schemas.Artifact(**a, url=str(request.url_for("get_artifact", job_id=rec.id, name=a["name"])))
