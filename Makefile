@@ -1,9 +1,10 @@
 # KneeMesh: two commands on a fresh machine.
-#   make demo   set up .venv and CalculiX if needed and run the main job on the bundled sample knee
+#   make demo   set up .venv (the runtime only) and CalculiX if needed and run the main job on the bundled sample knee
 #   make test   set up .venv with the test and training extras, CalculiX and a headless Chromium, and run the whole test suite
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
+RUNTIME := $(VENV)/.runtime
 STAMP  := $(VENV)/.installed
 DEMO_OUT ?= demo-output
 # One text encoding whatever the locale (CI runs with an ASCII one).
@@ -15,8 +16,13 @@ $(PY):
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 
-# Reinstall only when the dependency list changes: a second run is fast.
-$(STAMP): pyproject.toml | $(PY)
+# Reinstall only when the dependency list changes: a second run is fast.  The demo needs the runtime
+# alone; the tests add their tools and the training extra (PyTorch) on top.
+$(RUNTIME): pyproject.toml | $(PY)
+	$(PY) -m pip install --quiet --disable-pip-version-check -e .
+	touch $(RUNTIME)
+
+$(STAMP): pyproject.toml $(RUNTIME)
 	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[test,train]"
 	touch $(STAMP)
 
@@ -38,7 +44,7 @@ browser:
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium-headless-shell >/dev/null; \
 	  else echo "Chromium is missing: run  sudo apt-get install chromium-headless-shell  (Debian/Ubuntu), then make again." >&2; exit 1; fi; }
 
-demo: $(STAMP) ccx
+demo: $(RUNTIME) ccx
 	$(VENV)/bin/kneemesh inspect kneemesh/data/right_knee_example.nrrd
 	$(VENV)/bin/kneemesh mesh kneemesh/data/right_knee_example.nrrd --out $(DEMO_OUT) --simulate smoke
 	@echo "Outputs are in $(abspath $(DEMO_OUT)): meshes/, attachments.json/.png, fe/ (decks; smoke/ results.json, contact.png), report.json."

@@ -9,6 +9,7 @@ import csv
 import http.server
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -111,6 +112,9 @@ def test_submit_survives_a_kill_gets_every_knee_once_and_reports(server, tmp_pat
 
     second = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=400)
     assert second.returncode == 0, second.stdout[-3000:] + second.stderr[-3000:]
+    # while a knee is in flight its job's state shows: its queue position, then the steps running
+    said = second.stderr
+    assert re.search(r"OAI_AKOA_\d+_\d+m: (queued, position \d+|running: .*\d+/\d+ steps)", said), said[-2000:]
     state = json.loads((out / STATE_FILE).read_text())["knees"]
     assert {k: v["state"] for k, v in state.items()} == {**{k.id: "done" for k in knees[:3]}, "broken/scan": "rejected"}
     assert "not_an_image" in state["broken/scan"]["reason"] or "corrupt" in state["broken/scan"]["reason"]
@@ -280,3 +284,45 @@ def test_knees_are_found_in_dicom_trees_and_manifests(tmp_path):
     manifest.write_text(f"id,path,side\nsubject1,{label},up\n")
     with pytest.raises(KneeMeshError, match="line 2: side 'up' is not left or right"):
         find_knees(manifest)
+
+
+def test_the_cohort_report_names_each_knee_of_its_figures_in_a_browser(tmp_path):
+    """Three simulated knees: the contact figure's legend names each knee beside its colour (drawn in the
+    page, seen in a screenshot), the patellofemoral curves are there, the worst knee's figure is the worst,
+    and each knee has its thumbnail."""
+    from kneemesh.cohort.report import PALETTE
+
+    tree = tmp_path / "cohort"
+    for i, kid in enumerate(("s1/00m", "s2/00m", "s3/12m")):
+        folder = tree / kid
+        (folder / "fe" / "smoke").mkdir(parents=True)
+        (folder / "job.json").write_text("{}")
+        (folder / "report.json").write_text(json.dumps({
+            "input": {"side": "right"}, "verdict": {"status": "ok", "reasons": []},
+            "tissues": {"femoral_cartilage": {"status": "ok", "min_scaled_jacobian": 0.3 + 0.1 * i, "coverage": 0.97 + 0.01 * i,
+                                              "volume_error": (-0.04, 0.01, 0.02)[i], "seconds": 3.0}}}))
+        incs = [{"time": 1.0 + f / 15, "flexion_deg": f, **{k: {"force_n": 400.0 + 50 * i + f, "area_mm2": 150.0,
+                                                                 "mean_pressure_mpa": 3.0, "peak_pressure_mpa": 8.0}
+                                                             for k in ("medial", "lateral", "patellofemoral")}}
+                for f in (0.0, 7.5, 15.0)]
+        (folder / "fe" / "smoke" / "results.json").write_text(json.dumps({"completed": True, "increments": incs}))
+        figure = np.full((60, 90, 3), 255, np.uint8)
+        figure[10:50, 10:80] = (40 * i, 120, 200)
+        sitk.WriteImage(sitk.GetImageFromArray(figure, isVector=True), str(folder / "attachments.png"))
+    r = subprocess.run([sys.executable, "-m", "kneemesh", "report", str(tree)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    page = tree / "report.html"
+    dom = subprocess.run([browser(), "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom", page.as_uri()],
+                         capture_output=True, text=True, timeout=120).stdout
+    legend = dom[dom.index('<ul class="legend">'):]
+    legend = legend[:legend.index("</ul>")]
+    assert all(kid in legend for kid in ("s1/00m", "s2/00m", "s3/12m")) and "patellofemoral contact force" not in legend
+    assert dom.count('class="thumb"') == 3
+    assert "0.020 (0.040)" in dom  # |volume error|: the median and the worst knee's, the largest
+    shot = tmp_path / "report.png"
+    subprocess.run([browser(), "--headless", "--no-sandbox", "--disable-gpu", f"--screenshot={shot}", "--window-size=1300,2600",
+                    page.as_uri()], capture_output=True, timeout=120)
+    pixels = np.asarray(sitk.GetArrayFromImage(sitk.ReadImage(str(shot))))[..., :3].reshape(-1, 3)
+    seen = {tuple(p) for p in np.unique(pixels, axis=0)}
+    for colour in PALETTE[:3]:  # the legend's swatches are drawn
+        assert tuple(int(colour[k:k + 2], 16) for k in (1, 3, 5)) in seen, colour

@@ -122,6 +122,9 @@ def test_bad_inputs_have_clear_errors(tmp_path):
 
     flat = sitk.GetImageFromArray(np.ones((20, 24), np.uint8))
     assert "3-D" in _expect("not_3d", write_image(flat, tmp_path / "slice.nrrd"))
+    one = sitk.GetImageFromArray(np.ones((1, 24, 20), np.uint8))  # one file of a DICOM series: a volume one slice thick
+    message = _expect("not_3d", write_image(one, tmp_path / "one_slice.nrrd"))
+    assert "a single slice (20 x 24 pixels)" in message and "not one file of it" in message
     four = sitk.GetImageFromArray(np.ones((2, 3, 20, 24), np.uint8), isVector=False)
     _expect("not_3d", write_image(four, tmp_path / "series4d.nii.gz"))
 

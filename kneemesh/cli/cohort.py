@@ -3,6 +3,7 @@ results home, ``compare`` two results of one knee, ``report`` over a cohort tree
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Optional
 
@@ -48,15 +49,28 @@ def submit(
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*columns, console=err, transient=False) as bar:
         task = bar.add_task("knees", total=len(knees))
+        shown: dict[str, str] = {}  # each knee in flight: where its job stands
+        lock = threading.Lock()
+
+        def progress(knee, line):
+            with lock:
+                if shown.get(knee.id) != line:  # a line when it changes; in a terminal, a row that updates
+                    shown[knee.id] = line
+                    if bar.console.is_terminal:
+                        bar.update(task, description=" | ".join(f"{k}: {v}" for k, v in shown.items()))
+                    else:
+                        bar.console.print(f"{knee.id}: {line}", highlight=False)
 
         def done(knee, rec):
-            bar.advance(task)
+            with lock:
+                shown.pop(knee.id, None)
+                bar.update(task, description="knees", advance=1)
             what = rec.get("verdict") if rec.get("state") == DONE else rec.get("state") or "unfinished"
             bar.console.print(f"{knee.id}: {what}" + (f" ({rec.get('reason') or rec.get('last_error')})"
                                                       if rec.get("state") != DONE else ""), highlight=False)
 
         try:
-            records = submit_cohort(knees, api, out_dir, options, concurrency, poll, done)
+            records = submit_cohort(knees, api, out_dir, options, concurrency, poll, done, progress)
         except KeyboardInterrupt:
             err.print("interrupted: rerun the same command to resume (finished knees are kept).")
             raise typer.Exit(130)

@@ -99,9 +99,21 @@ class Stopped(Exception):
     """The client was asked to stop (Ctrl-C); the state file already holds everything so far."""
 
 
+def job_progress(job: dict) -> str:
+    """One line of where a job stands: queued and its position, or the steps running and how many are done."""
+    if job["state"] == "queued":
+        position = job.get("queue_position")
+        return "queued" + (f", position {position}" if position is not None else "")
+    steps = job.get("steps", [])
+    running = [s["step"] for s in steps if s["state"] == "running"]
+    done = sum(s["state"] in ("done", "failed") for s in steps)
+    return f"{job['state']}: " + (", ".join(running) + "; " if running else "") + f"{done}/{len(steps)} steps"
+
+
 def process(knee: Knee, api: Api, state: State, out: Path, options: dict, poll_s: float,
-            stop: threading.Event | None = None) -> dict:
-    """Take one knee as far as it goes: submit (once), wait, bring home.  Returns its record."""
+            stop: threading.Event | None = None, on_progress: Callable[[Knee, str], None] | None = None) -> dict:
+    """Take one knee as far as it goes: submit (once), wait, bring home.  Returns its record; ``on_progress``
+    hears where its job stands (:func:`job_progress`) at each poll."""
     rec = state.get(knee.id)
     folder = out / knee.id
     if rec.get("state") == DONE and _verified(folder, rec.get("manifest", [])):
@@ -125,6 +137,8 @@ def process(knee: Knee, api: Api, state: State, out: Path, options: dict, poll_s
             job_id = created["id"]
         while True:
             job = api.job(job_id)
+            if on_progress:
+                on_progress(knee, job_progress(job))
             if job["state"] in FINISHED:
                 break
             if stop.wait(poll_s):
@@ -145,7 +159,8 @@ def process(knee: Knee, api: Api, state: State, out: Path, options: dict, poll_s
 
 
 def submit_cohort(knees: list[Knee], api: Api, out: Path, options: dict, concurrency: int = 4, poll_s: float = 2.0,
-                  on_done: Callable[[Knee, dict], None] | None = None) -> list[dict]:
+                  on_done: Callable[[Knee, dict], None] | None = None,
+                  on_progress: Callable[[Knee, str], None] | None = None) -> list[dict]:
     """Submit ``knees`` with at most ``concurrency`` in flight and bring each home; writes the state
     file and ``summary.csv`` in ``out``.  Returns one record per knee.  Transient failures that
     outlast the retries leave a knee unfinished (a rerun resumes it)."""
@@ -155,7 +170,7 @@ def submit_cohort(knees: list[Knee], api: Api, out: Path, options: dict, concurr
     stop = threading.Event()
     pool = ThreadPoolExecutor(max_workers=max(1, concurrency))
     try:
-        futures = {pool.submit(process, k, api, state, out, options, poll_s, stop): k for k in knees}
+        futures = {pool.submit(process, k, api, state, out, options, poll_s, stop, on_progress): k for k in knees}
         for fut in as_completed(futures):
             knee = futures[fut]
             try:

@@ -179,10 +179,13 @@ def _check_geometry(image: sitk.Image, name: str, max_voxels: int) -> None:
     dim = image.GetDimension()
     size = image.GetSize()
     if dim != 3 or min(size) < 2:
+        flat = dim == 3 and sorted(size)[0] == 1
+        what = (f"a single slice ({' x '.join(str(n) for n in size if n > 1)} pixels)" if flat or dim == 2
+                else f"{dim}-D, size {size}")
         raise KneeMeshError(
             "not_3d",
-            f"{Path(name).name}: the image is {dim}-D with size {size}; expected one 3-D volume "
-            "(a single 2-D slice or a 4-D series cannot be meshed).",
+            f"{Path(name).name}: the image is {what}; expected one 3-D volume: every slice of a sagittal acquisition "
+            "(a DICOM series as a folder or a zip of all its files, not one file of it; a 4-D series cannot be meshed).",
         )
     if image.GetNumberOfComponentsPerPixel() != 1:
         raise KneeMeshError("not_3d", f"{Path(name).name}: the image has vector pixels; expected a scalar 3-D volume.")

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pyacvd
 import pymeshfix
 import pyvista as pv
+from pyvista.core.errors import PyVistaDeprecationWarning
 from vtkmodules.vtkCommonCore import reference
 from vtkmodules.vtkCommonDataModel import vtkStaticCellLocator
 
@@ -57,15 +60,19 @@ def bone_mesh(surface: pv.PolyData, edge_mm: float = 3.0) -> pv.PolyData:
     n_clusters = int(surface.area / (_AREA_PER_VERTEX * edge_mm**2))
     if n_clusters < 50:
         raise KneeMeshError("bone_too_small", f"bone surface of {surface.area:.0f} mm^2 is too small for {edge_mm} mm elements.")
-    clus = pyacvd.Clustering(surface)
-    while clus.mesh.n_points < 8 * n_clusters:
-        clus.subdivide(2)
-    clus.cluster(n_clusters)
+    with warnings.catch_warnings():  # pyacvd reads a PyVista attribute PyVista has deprecated: not the user's concern
+        warnings.simplefilter("ignore", PyVistaDeprecationWarning)
+        clus = pyacvd.Clustering(surface)
+        while clus.mesh.n_points < 8 * n_clusters:
+            clus.subdivide(2)
+        clus.cluster(n_clusters)
     # pyacvd's own ``moveclus`` ray-casts each centroid against its 1000 nearest
     # faces (seconds per bone); a closest-point projection onto the smooth
     # surface does the same job in ~0.1 s and cuts the mean distance to the
     # label by ~15%.
-    clustered = clus.create_mesh(moveclus=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PyVistaDeprecationWarning)
+        clustered = clus.create_mesh(moveclus=False)
     clustered.points = closest_points(np.asarray(clustered.points, float), surface)
     shell = _meshfix(clustered)
     return orient_outward(shell)
