@@ -232,7 +232,19 @@ def test_a_hollow_or_unblended_cartilage_is_review_with_its_reasons_never_ok():
     # though the mesh before it met every target
     beyond = {"rings": 3, "coverage": 0.93, "surface_deviation_mm": {"median": 0.3, "p95": 0.9}, "passed": False}
     reshaped = tissue_verdict(False, {**good, "blend": {"passed": True, "applied": True, "beyond_rim": beyond}})
-    assert reshaped[0] == "review" and reshaped[1][0].startswith("beyond the 3 rings of its edge that the blend reshapes, the blended file covers 93.0%")
+    assert reshaped[0] == "review" and reshaped[1] == [
+        "beyond the 3 rings of its edge that the blend reshapes, the blended file covers 93.0% of the cartilage (target 97%) "
+        "and its articular surface lies 0.3 mm (median; target 0.15 mm) and 0.9 mm (p95; target 0.5 mm) from the cartilage's"]
+    # a reason quotes only the targets missed, and says which mesh its figures are (the table's are the blended file's)
+    short = {**beyond, "surface_deviation_mm": {"median": 0.0, "p95": 0.0}}
+    _, said = tissue_verdict(False, {**good, "blend": {"passed": True, "applied": True, "beyond_rim": short}})
+    assert said == ["beyond the 3 rings of its edge that the blend reshapes, the blended file covers 93.0% of the "
+                       "cartilage (target 97%)"]
+    _, said = tissue_verdict(False, {**good, "gate": {"coverage": 0.935, "volume_error": 0.0, "surface_deviation_mm":
+                                                         {"median": 0.2, "p95": 0.3}}, "blend": {"passed": True, "applied": True}})
+    assert said == ["before its edge blend, the mesh covers 93.5% of the cartilage (target 97%)",
+                       "before its edge blend, the mesh's articular surface lies 0.2 mm (median; target 0.15 mm) from the "
+                       "cartilage's"]
     report = {"tissues": {"femoral_cartilage": {**hollow, "status": status, "reasons": reasons},
                           "tibia": {"status": "ok"}, "patella": {"status": "failed", "reason": "no patella"}}}
     verdict = knee_verdict(report)

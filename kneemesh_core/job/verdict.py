@@ -8,7 +8,7 @@ misses a fidelity or plausibility target; ``failed`` means there is no usable fi
 
 from __future__ import annotations
 
-from kneemesh_core.hexmesh.fidelity import FIGURES, fidelity_checks
+from kneemesh_core.hexmesh.fidelity import FIGURES, beyond_rim_checks, fidelity_checks
 from kneemesh_core.hexmesh.targets import (ELEMENT_SIZE_TOL, FUSED_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM,
                                            MAX_EDGE_RATIO, MAX_FRAC_EDGE_RATIO, MIN_COVERAGE, MIN_SCALED_JACOBIAN,
                                            USABLE_FRAC_BELOW, USABLE_FRAC_EDGE_RATIO, USABLE_MIN_SCALED_JACOBIAN, VOLUME_TOL)
@@ -29,9 +29,11 @@ def bone_reasons(e: dict) -> list[str]:
     if e.get("self_intersections"):
         out.append(f"the bone shell crosses itself ({e['self_intersections']} edges)")
     d = e.get("surface_distance_mm", {})
-    if d.get("mean", 0) > MAX_MEAN_DISTANCE_MM or d.get("p95", 0) > MAX_P95_DISTANCE_MM:
-        out.append(f"the bone shell lies {d.get('mean')} mm (mean) / {d.get('p95')} mm (p95) from its label "
-                   f"(targets {MAX_MEAN_DISTANCE_MM} / {MAX_P95_DISTANCE_MM} mm)")
+    missed = [f"{d.get('mean')} mm (mean; target {MAX_MEAN_DISTANCE_MM} mm)"] if d.get("mean", 0) > MAX_MEAN_DISTANCE_MM else []
+    if d.get("p95", 0) > MAX_P95_DISTANCE_MM:
+        missed.append(f"{d.get('p95')} mm (p95; target {MAX_P95_DISTANCE_MM} mm)")
+    if missed:
+        out.append(f"the bone shell lies {' and '.join(missed)} from its label")
     return out
 
 
@@ -70,29 +72,39 @@ def cartilage_reasons(e: dict) -> list[str]:
     # headline figures are the shipped file's), and the blended file beyond the rim the blend reshapes
     swept = {**e, **{k: gate[k] for k in FIGURES if k in gate}}
     checks = fidelity_checks(swept)
-    if not checks["coverage"]:
-        out.append(f"covers {swept['coverage']:.1%} of the cartilage (target {MIN_COVERAGE:.0%})")
-    if not checks["volume"]:
-        out.append(f"volume {swept['volume_error']:+.1%} off the label's (target within {VOLUME_TOL:.0%})")
-    if not checks["deviation_median"] or not checks["deviation_p95"]:
-        d = swept["surface_deviation_mm"]
-        out.append(f"articular surface {d['median']} mm (median) / {d['p95']} mm (p95) from the cartilage's "
-                   f"(targets {MAX_DEVIATION_MEDIAN_MM} / {MAX_DEVIATION_P95_MM} mm)")
     blend = e.get("blend")
+    # (where the blend was applied, the headline figures are the blended file's: the reason says which mesh it quotes)
+    swept_mesh = "before its edge blend, the mesh" if (blend or {}).get("applied") else ""
+    whose = f"{swept_mesh}'s " if swept_mesh else ""
+    if not checks["coverage"]:
+        out.append(f"{swept_mesh} covers {swept['coverage']:.1%} of the cartilage (target {MIN_COVERAGE:.0%})".lstrip())
+    if not checks["volume"]:
+        out.append(f"{whose}volume {swept['volume_error']:+.1%} off the label's (target within {VOLUME_TOL:.0%})")
+    if deviation := _missed_deviation(swept["surface_deviation_mm"], checks):
+        out.append(f"{whose}articular surface lies {deviation} from the cartilage's")
     if blend is not None and not blend.get("passed"):
         out.append(f"edge blend: {blend.get('reason', 'missed its targets')}")
     rim = (blend or {}).get("beyond_rim")
     if rim is not None and blend.get("applied") and not rim["passed"]:
-        d = rim["surface_deviation_mm"]
-        out.append(f"beyond the {rim['rings']} rings of its edge that the blend reshapes, the blended file "
-                   f"covers {rim['coverage']:.1%} of the cartilage (target {MIN_COVERAGE:.0%}) and its articular surface "
-                   f"lies {d['median']} / {d['p95']} mm (median / p95) from the cartilage's "
-                   f"(targets {MAX_DEVIATION_MEDIAN_MM} / {MAX_DEVIATION_P95_MM} mm)")
+        rim_checks = beyond_rim_checks(rim)
+        missed = ([f"covers {rim['coverage']:.1%} of the cartilage (target {MIN_COVERAGE:.0%})"] if not rim_checks["coverage"]
+                  else [])
+        if deviation := _missed_deviation(rim["surface_deviation_mm"], rim_checks):
+            missed.append(f"its articular surface lies {deviation} from the cartilage's")
+        out.append(f"beyond the {rim['rings']} rings of its edge that the blend reshapes, the blended file " + " and ".join(missed))
     conform = e.get("bone_conform")
     if conform and conform.get("penetration_conformed_mm", 0) > FUSED_TOL_MM:
         out.append(f"lies {conform['penetration_conformed_mm']} mm inside its bone after the bone gave way "
                    f"(target {FUSED_TOL_MM} mm)")
     return out
+
+
+def _missed_deviation(d: dict, checks: dict) -> str:
+    """The articular deviation figures (mm) that miss their targets, each with its target; empty when none does."""
+    missed = [f"{d['median']} mm (median; target {MAX_DEVIATION_MEDIAN_MM} mm)"] if not checks["deviation_median"] else []
+    if not checks["deviation_p95"]:
+        missed.append(f"{d['p95']} mm (p95; target {MAX_DEVIATION_P95_MM} mm)")
+    return " and ".join(missed)
 
 
 def tissue_verdict(tissue_is_bone: bool, e: dict) -> tuple[str, list[str]]:
