@@ -413,3 +413,30 @@ def test_the_prefemoral_sheet_continues_the_trochlea_up_the_femur_from_the_carti
     c = nodes[hexes]  # positive volumes, the contact face (nodes 5-8) towards the patella (+y)
     jac = np.einsum("ij,ij->i", np.cross(c[:, 1] - c[:, 0], c[:, 3] - c[:, 0]), c[:, 4] - c[:, 0])
     assert np.all(jac > 0) and np.all(c[:, 4:, 1].mean(1) > c[:, :4, 1].mean(1))
+
+
+def test_a_knee_without_a_patella_gets_a_tibiofemoral_model_that_runs(tmp_path):
+    """The sample knee with its patella and patellar cartilage unlabelled (a field of view that misses it):
+    the two tissues are review, not failed, and the decks are a tibiofemoral model, said so, whose smoke run
+    completes with the femur's forces balanced."""
+    import SimpleITK as sitk
+
+    from kneemesh_core.job import JobRequest, run
+    from kneemesh_core.knee import load_knee
+    from kneemesh_core.tissues import LABEL
+
+    knee = load_knee(real(SAMPLE))
+    arr = sitk.GetArrayFromImage(knee.labels)
+    arr[np.isin(arr, [LABEL["patella"], LABEL["patellar_cartilage"]])] = 0
+    image = sitk.GetImageFromArray(arr)
+    image.CopyInformation(knee.labels)
+    path = tmp_path / "no_patella_right.nrrd"
+    sitk.WriteImage(image, str(path))
+    report = run(path, tmp_path / "job", JobRequest.build(preset="kneemesh", element_size=2.0, simulate="smoke").job_options())
+    for t in ("patella", "patellar_cartilage"):
+        assert report["tissues"][t]["status"] == "review" and "not labelled" in report["tissues"][t]["reasons"][0]
+    assert report["fe"]["status"] == "review" and report["fe"]["model"] == "tibiofemoral"
+    assert "PATELLA" not in (tmp_path / "job" / "fe" / "knee_ccx.inp").read_text()
+    sim = report["simulation"]
+    assert sim["completed"] and "patellofemoral" not in sim["final"] and sim["final"]["balance_error"] < MAX_BALANCE_ERROR
+    assert report["verdict"]["status"] == "review"

@@ -87,7 +87,8 @@ def test_cartilage_keeps_full_thickness_holes():
 
 def test_job_isolates_failures_and_cartilage_only_labels_fail_clearly(tmp_path):
     knee = load_knee(real(SAMPLE))
-    # no patella bone: the patella and its cartilage fail with reasons, the rest of the knee completes
+    # no patella bone: the patella is not labelled (review, said so) and its cartilage fails with the reason (it is
+    # meshed on its bone); the rest of the knee completes
     arr = sitk.GetArrayFromImage(knee.labels)
     arr[arr == LABEL["patella"]] = 0
     im = sitk.GetImageFromArray(arr)
@@ -95,15 +96,16 @@ def test_job_isolates_failures_and_cartilage_only_labels_fail_clearly(tmp_path):
     path = write_image(im, tmp_path / "no_patella_right.nrrd")
     report = run(path, tmp_path / "out", JobOptions(), workers=2)
     tissues = report["tissues"]
-    assert tissues["patella"]["status"] == "failed" and "no patella" in tissues["patella"]["reason"]
+    assert tissues["patella"]["status"] == "review" and "not labelled" in tissues["patella"]["reasons"][0]
     assert tissues["patellar_cartilage"]["status"] == "failed" and "patella" in tissues["patellar_cartilage"]["reason"]
     for ok in ("femur", "tibia", "femoral_cartilage", "medial_tibial_cartilage", "lateral_tibial_cartilage"):
         assert tissues[ok]["status"] == "ok", (ok, tissues[ok].get("reason"))
     assert (tmp_path / "out" / "meshes" / "medial_tibial_cartilage.vtu").exists()
     on_disk = json.loads((tmp_path / "out" / "report.json").read_text())
-    assert on_disk["summary"]["failed"] == ["patella", "patellar_cartilage"]
+    assert on_disk["summary"]["failed"] == ["patellar_cartilage"] and on_disk["summary"]["review"] == ["patella"]
     for key in ("status", "reason", "seconds"):
-        assert key in on_disk["tissues"]["patella"]
+        assert key in on_disk["tissues"]["patellar_cartilage"]
+    assert on_disk["fe"]["model"] == "tibiofemoral"  # the decks go on without the patella
 
     # cartilage-only (imorphics) labels are no knee to mesh: refused before anything is written, saying what was found
     lut = np.zeros(256, np.uint8)

@@ -24,7 +24,7 @@ def inspect_table(title: str, info: dict) -> Table:
     t.add_row("label convention", info["preset"])
     t.add_row("side", f"{info['side']} (by {info['side_method']})")
     for tissue, ml in info["tissues"].items():
-        t.add_row(tissue, f"{ml:.2f} ml")
+        t.add_row(tissue, f"{ml:.2f} ml" if ml > 0 else "[yellow]not labelled[/]")
     return t
 
 
@@ -35,8 +35,9 @@ def tissue_table(title: str, report: dict) -> Table:
     for col in ("tissue", "status", "s", "elements", "element mm", "volume ml", "label ml", "quality", "fidelity"):
         t.add_column(col)
     for tissue, e in report[TISSUES_SECTION].items():
-        if e["status"] == "failed" and "n_elements" not in e and "n_cells" not in e:  # no mesh at all
-            t.add_row(tissue, STATUS["failed"], f"{e['seconds']:.1f}", "", "", "", "", "", e["reason"])
+        if "n_elements" not in e and "n_cells" not in e:  # no mesh at all: failed, or not labelled
+            t.add_row(tissue, STATUS.get(e["status"], e["status"]), f"{e['seconds']:.1f}", "", "", "", "", "",
+                      e.get("reason") or "; ".join(e.get("reasons", [])))
             continue
         if "n_elements" in e:  # hex cartilage
             quality = f"min SJ {e['min_scaled_jacobian']:.2f}, {e['frac_sj_below_0_5']:.2%} < 0.5"

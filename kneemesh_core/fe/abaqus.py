@@ -28,13 +28,13 @@ def deck(m: Model, include: str) -> str:
     w = ["*HEADING", f"KneeMesh {__version__} knee, Abaqus/Explicit dialect: {lc.flexion_deg:g} deg flexion under "
          f"{lc.joint_load_n:g} N, cartilage {lc.cartilage}", f"*INCLUDE, INPUT={include}"]
     eid = m.next_element
-    for b in BONES:
+    for b in m.bone_triangles:
         tris = m.bone_triangles[b]
         w.append(f"*ELEMENT, TYPE=R3D3, ELSET={b.upper()}_SHELL")
         w += [f"{eid + i}, {t[0]}, {t[1]}, {t[2]}" for i, t in enumerate(tris)]
         eid += len(tris)
     w += _rigid_bodies(m)
-    for b in MOVING_BODIES:
+    for b in (b for b in MOVING_BODIES if b in m.ref):
         w += [f"*ELEMENT, TYPE=MASS, ELSET={b.upper()}_MASS", f"{eid}, {m.ref[b]}", f"*MASS, ELSET={b.upper()}_MASS", "1.0e-3",
               f"*ELEMENT, TYPE=ROTARYI, ELSET={b.upper()}_INERTIA", f"{eid + 1}, {m.ref[b]}",
               f"*ROTARY INERTIA, ELSET={b.upper()}_INERTIA", "1.0, 1.0, 1.0"]
@@ -59,8 +59,9 @@ def _rigid_bodies(m: Model) -> list[str]:
     """Each bone a rigid body on its shell and, for rigid cartilage, its cartilage elements; for
     deformable cartilage, the cartilage's bone-side nodes and the ligament ends ride on the bone as pins."""
     w = []
-    members = {b: [p.name.upper() for p in m.parts.values() if p.body == b] for b in BONES}
-    for b in BONES:
+    bones = [b for b in BONES if b in m.ref]
+    members = {b: [p.name.upper() for p in m.parts.values() if p.body == b] for b in bones}
+    for b in bones:
         if m.load.cartilage == "rigid":
             w += [f"*ELSET, ELSET={b.upper()}_RIGID", ", ".join([f"{b.upper()}_SHELL", *members[b]])]
             w.append(f"*RIGID BODY, ELSET={b.upper()}_RIGID, REF NODE={m.ref[b]}, PIN NSET={b.upper()}_BODY")

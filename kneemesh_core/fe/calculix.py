@@ -24,7 +24,7 @@ CONTROLS = ("*CONTROLS, PARAMETERS=FIELD", "0.005, 0.01, 100.0, 100.0")
 
 def rot_nodes(m: Model) -> dict[str, int]:
     """The ROT node of each moving rigid body (the held body is no rigid body: its nodes are held)."""
-    return {b: m.next_id + i for i, b in enumerate(MOVING_BODIES)}
+    return {b: m.next_id + i for i, b in enumerate(b for b in MOVING_BODIES if b in m.ref)}
 
 
 def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str) -> str:

@@ -46,13 +46,15 @@ def shared(m: Model) -> str:
     w.append("*ELEMENT, TYPE=SPRINGA, ELSET=LIGAMENTS")
     w += [f"{s.element}, {s.nodes[0]}, {s.nodes[1]}" for s in m.springs]
     q = m.quadriceps
-    w += ["*ELEMENT, TYPE=SPRINGA, ELSET=QUADRICEPS", f"{q.element}, {q.nodes[0]}, {q.nodes[1]}"]
-    for bone in BONES:
+    if q is not None:
+        w += ["*ELEMENT, TYPE=SPRINGA, ELSET=QUADRICEPS", f"{q.element}, {q.nodes[0]}, {q.nodes[1]}"]
+    for bone in m.bone_nodes:
         w += set_lines("NSET", f"{bone.upper()}_BONE", m.bone_nodes[bone])
     for body, nodes in m.body_nodes.items():
         w += set_lines("NSET", f"{body.upper()}_BODY", sorted(set(nodes)))
-    w += set_lines("NSET", "REFS", [m.ref[b] for b in BONES])
-    w += set_lines("NSET", "LIGAMENT_ENDS", sorted({n for s in [*m.springs, m.quadriceps] for n in s.nodes} | set(m.anchors.values())))
+    w += set_lines("NSET", "REFS", [m.ref[b] for b in BONES if b in m.ref])
+    w += set_lines("NSET", "LIGAMENT_ENDS", sorted({n for s in [*m.springs, *([q] if q else [])] for n in s.nodes}
+                                                   | set(m.anchors.values())))
     for part in m.parts.values():
         name = part.name.upper()
         w += set_lines("ELSET", f"{name}_ART", part.articular) + set_lines("ELSET", f"{name}_DEEP", part.bone_side)
@@ -78,9 +80,10 @@ def shared(m: Model) -> str:
               f"initial length {s.length_mm:.3f} mm" + (f" ({s.beyond_mm:.3f} mm of it beyond its nodes)" if s.beyond_mm else ""),
               f"*SPRING, ELSET=LIG_{s.name}, NONLINEAR", ""]
         w += [f"{f:.6e}, {d:.6e}" for f, d in ligament_table(s.stiffness_n, s.slack_length_mm, s.length_mm)]
-    w += [f"** quadriceps (patella to the femoral shaft): {m.load.quadriceps_n:g} N at its initial length, +1 N/mm as it "
-          f"lengthens, slack {QUADRICEPS_SLACK_MM:g} mm shorter", "*SPRING, ELSET=QUADRICEPS, NONLINEAR", ""]
-    w += [f"{f:.6e}, {d:.6e}" for f, d in quadriceps_table(m.load.quadriceps_n, q.length_mm)]
+    if q is not None:
+        w += [f"** quadriceps (patella to the femoral shaft): {m.load.quadriceps_n:g} N at its initial length, +1 N/mm as it "
+              f"lengthens, slack {QUADRICEPS_SLACK_MM:g} mm shorter", "*SPRING, ELSET=QUADRICEPS, NONLINEAR", ""]
+        w += [f"{f:.6e}, {d:.6e}" for f, d in quadriceps_table(m.load.quadriceps_n, q.length_mm)]
     w += [f"** contact: a thin elastic layer on bone, M = (1 - nu) E / ((1 + nu)(1 - 2 nu)), E {CARTILAGE_MODULUS_MPA:g} MPa, "
           f"nu {CARTILAGE_POISSON:g}"]
     for name, (slave, master) in m.pairs.items():
@@ -108,12 +111,13 @@ def meta(m: Model, flexion_deg: float) -> dict:
         "pairs": {name: f"{slave.upper()}_ARTICULAR" for name, (slave, _) in m.pairs.items()},
         "slave_elements": {name: [int(m.parts[slave].elements[0]), int(m.parts[slave].elements[-1])]
                            for name, (slave, _) in m.pairs.items()},
-        "ref": {b: m.ref[b] for b in BONES}, "rot": calculix.rot_nodes(m),
+        "ref": {b: m.ref[b] for b in BONES if b in m.ref}, "rot": calculix.rot_nodes(m),
         "femur_springs_n_mm": spring_stiffness("femur", "translation").tolist(),
         "patella_springs_n_mm": spring_stiffness("patella", "translation", to="femur").tolist(),
-        "patella_anchor": m.anchors["patella"],
-        "quadriceps": {"nodes": list(m.quadriceps.nodes), "start": [m.nodes[n].tolist() for n in m.quadriceps.nodes],
-                       "law": quadriceps_table(m.load.quadriceps_n, m.quadriceps.length_mm)},
+        "patella_anchor": m.anchors.get("patella"),
+        "quadriceps": None if m.quadriceps is None else {
+            "nodes": list(m.quadriceps.nodes), "start": [m.nodes[n].tolist() for n in m.quadriceps.nodes],
+            "law": quadriceps_table(m.load.quadriceps_n, m.quadriceps.length_mm)},
         "fibres": [{"name": s.name, "bundle": s.bundle, "k": s.stiffness_n, "slack": s.slack_length_mm, "beyond": s.beyond_mm,
                     "nodes": list(s.nodes), "start": [m.nodes[s.nodes[0]].tolist(), m.nodes[s.nodes[1]].tolist()],
                     "femur_end": 0 if s.nodes[0] in femur_nodes else 1 if s.nodes[1] in femur_nodes else None}

@@ -56,6 +56,8 @@ def restraints(m: Model, first_element: int, dof_of: DofOf) -> tuple[list[str], 
     lines and the next free element id."""
     lines, eid = [], first_element
     for r in RESTRAINTS:
+        if r.body not in m.ref or (r.to is not None and r.to not in m.ref):
+            continue  # a tibiofemoral model has no patella
         node, dof = dof_of(r.body, r.kind, r.axis)
         if r.to is None:
             kind, nodes, dofs = "SPRING1", (node,), str(dof)

@@ -107,12 +107,22 @@ def deck_frame(attachments: dict) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(femur["origin_mm"], float), np.stack([x, np.cross(z, x), z], axis=1)
 
 
+#: What a tibiofemoral model leaves out where the knee has no patella (or no patellar cartilage) labelled.
+PATELLOFEMORAL = ("patella", "patellar_cartilage")
+
+
 def build(bones: dict[str, pv.PolyData], cartilages: dict[str, pv.UnstructuredGrid], attachments: dict,
           load: LoadCase = LoadCase()) -> Model:
     """The seated model of a knee: its bone shells (LPS mm, one per bone of ``BONES``), its cartilage
     hex meshes (LPS mm, one per cartilage of ``CARTILAGES``, with the cell data ``layer`` and point data
     ``articular`` and ``bone_side`` of :class:`kneemesh_core.hexmesh.CartilageMesh`) and its frames and
-    fibres (``attachments.json``), under ``load``."""
+    fibres (``attachments.json``), under ``load``.  Without the patella or its cartilage
+    (:data:`PATELLOFEMORAL`) the model is tibiofemoral: no patella, patellofemoral contact, quadriceps or
+    prefemoral sheet, and the fibres that end on the patella are left out."""
+    patellofemoral = all(t in bones or t in cartilages for t in PATELLOFEMORAL)
+    if not patellofemoral:
+        bones = {b: v for b, v in bones.items() if b not in PATELLOFEMORAL}
+        cartilages = {t: v for t, v in cartilages.items() if t not in PATELLOFEMORAL}
     origin, rot = deck_frame(attachments)
 
     def to_deck(p) -> np.ndarray:
@@ -123,25 +133,31 @@ def build(bones: dict[str, pv.PolyData], cartilages: dict[str, pv.UnstructuredGr
                      "axes_lps": {"X_right": rot[:, 0].round(6).tolist(), "Y_anterior": rot[:, 1].round(6).tolist(),
                                   "Z_superior": rot[:, 2].round(6).tolist()}})
     frames = attachments["frames"]
-    _add_bones(m, {b: to_deck(bones[b].points) for b in BONES}, {b: bones[b].regular_faces for b in BONES})
-    for tissue in CARTILAGES:
+    present = [b for b in BONES if b in bones]
+    _add_bones(m, {b: to_deck(bones[b].points) for b in present}, {b: bones[b].regular_faces for b in present})
+    for tissue in (t for t in CARTILAGES if t in cartilages):
         _add_cartilage(m, tissue, cartilages[tissue], to_deck)
-    for name, (slave, master) in PAIRS.items():
+    m.pairs = {name: pair for name, pair in PAIRS.items() if all(t in m.parts for t in pair)}
+    for name, (slave, master) in m.pairs.items():
         m.contact_k[name] = contact_stiffness(m.parts[slave].thickness_mm, m.parts[master].thickness_mm)
     # reference nodes: femur and patella at their frames' origins, tibia at the tibial frame's
-    for body in BONES:
+    for body in present:
         m.ref[body] = int(m.add_nodes(to_deck(np.asarray(frames[body]["origin_mm"])[None]))[0])
-    m.anchors["patella"] = int(m.add_nodes(m.nodes[m.ref["patella"]][None])[0])
-    m.body_nodes["femur"].append(m.anchors["patella"])
-    _add_ligaments(m, attachments["fibres"], to_deck)
-    _add_quadriceps(m, to_deck(np.asarray(frames["patella"]["origin_mm"])
-                               + QUADRICEPS_POLE_MM * np.asarray(frames["patella"]["axes"]["proximal"])))
-    m.patella_anterior = np.asarray(frames["patella"]["axes"]["anterior"]) @ rot
+    if patellofemoral:
+        m.anchors["patella"] = int(m.add_nodes(m.nodes[m.ref["patella"]][None])[0])
+        m.body_nodes["femur"].append(m.anchors["patella"])
+    _add_ligaments(m, [f for f in attachments["fibres"] if all(e["bone"] in m.ref for e in f["ends"])], to_deck)
+    if patellofemoral:
+        _add_quadriceps(m, to_deck(np.asarray(frames["patella"]["origin_mm"])
+                                   + QUADRICEPS_POLE_MM * np.asarray(frames["patella"]["axes"]["proximal"])))
+        m.patella_anterior = np.asarray(frames["patella"]["axes"]["anterior"]) @ rot
     m.tibial_axis = np.asarray(frames["tibia"]["axes"]["proximal"], float) @ rot
     femur = seat_femur(m)
-    if load.prefemoral:
-        add_prefemoral(m)
-    patella = seat_patella(m)
+    patella = None
+    if patellofemoral:
+        if load.prefemoral:
+            add_prefemoral(m)
+        patella = seat_patella(m)
     _measure_springs(m)
     m.seating = _seating_record(m, femur, patella)
     if load.menisci:
@@ -151,7 +167,7 @@ def build(bones: dict[str, pv.PolyData], cartilages: dict[str, pv.UnstructuredGr
 
 def _add_bones(m: Model, points: dict[str, np.ndarray], triangles: dict[str, np.ndarray]) -> None:
     """Each bone's shell: its nodes (P, 3) in the deck frame and triangles (T, 3) into them."""
-    for bone in BONES:
+    for bone in (b for b in BONES if b in points):
         ids = m.add_nodes(points[bone])
         m.bone_nodes[bone] = ids
         m.bone_triangles[bone] = ids[triangles[bone]]
@@ -216,7 +232,8 @@ def _measure_springs(m: Model) -> None:
     for s in m.springs:
         s.length_mm = float(np.linalg.norm(m.nodes[s.nodes[0]] - m.nodes[s.nodes[1]])) + s.beyond_mm
     q = m.quadriceps
-    q.length_mm = float(np.linalg.norm(m.nodes[q.nodes[0]] - m.nodes[q.nodes[1]]))
+    if q is not None:
+        q.length_mm = float(np.linalg.norm(m.nodes[q.nodes[0]] - m.nodes[q.nodes[1]]))
 
 
 def _surface(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
@@ -351,17 +368,17 @@ def seat_patella(m: Model) -> dict:
     return {"gaps": pf, "shift_mm": shift}
 
 
-def _seating_record(m: Model, femur: dict, patella: dict) -> dict:
+def _seating_record(m: Model, femur: dict, patella: dict | None) -> dict:
     """What the seating did, for the report: the overlaps of the image pose it removed, the shifts, the
     preload depth and its share of the tibiofemoral layers' thickness."""
     def overlap(v: np.ndarray) -> float:
         return round(float(max(0.0, -np.nanmin(v))) if np.isfinite(v).any() else 0.0, 3)
 
-    before = {**femur["gaps"], "patellofemoral": patella["gaps"]}
+    before = {**femur["gaps"], **({"patellofemoral": patella["gaps"]} if patella is not None else {})}
     depth = femur["depth_mm"]
     return {"initial_overlap_mm": {k: overlap(v) for k, v in before.items()},
             "initial_overlap_nodes": {k: int((v < 0).sum()) for k, v in before.items()},
             "femur_shift_mm": round(femur["shift_mm"], 3), "preload_depth_mm": round(depth, 3),
             "preload_strain": round(depth / float(np.mean([m.parts[s].thickness_mm + m.parts[f].thickness_mm
                                                            for s, f in (PAIRS["medial"], PAIRS["lateral"])])), 3),
-            "patella_shift_mm": round(patella["shift_mm"], 3)}
+            **({"patella_shift_mm": round(patella["shift_mm"], 3)} if patella is not None else {})}

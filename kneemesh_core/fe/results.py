@@ -129,13 +129,14 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
                     fe, other = (pa, pb) if f["femur_end"] == 0 else (pb, pa)
                     femur_force += force * (other - fe) / np.linalg.norm(other - fe)
             q = meta["quadriceps"]  # pulls its origin on the femur towards the patella
-            pa, pb = (np.asarray(p) + u[n] for p, n in zip(q["start"], q["nodes"]))
-            stretch = float(np.linalg.norm(pa - pb) - np.linalg.norm(np.subtract(*q["start"])))
-            law = np.asarray(q["law"])
-            femur_force += float(np.interp(stretch, law[:, 1], law[:, 0])) * (pa - pb) / np.linalg.norm(pa - pb)
+            if q is not None:
+                pa, pb = (np.asarray(p) + u[n] for p, n in zip(q["start"], q["nodes"]))
+                stretch = float(np.linalg.norm(pa - pb) - np.linalg.norm(np.subtract(*q["start"])))
+                law = np.asarray(q["law"])
+                femur_force += float(np.interp(stretch, law[:, 1], law[:, 0])) * (pa - pb) / np.linalg.norm(pa - pb)
         if t in refs:
             femur_force -= np.asarray(meta["femur_springs_n_mm"]) * refs[t][meta["ref"]["femur"]]
-            if t in ends:  # the patella's springs pull their anchor on the femur
+            if t in ends and meta["patella_anchor"] is not None:  # the patella's springs pull their anchor on the femur
                 femur_force += np.asarray(meta["patella_springs_n_mm"]) * (refs[t][meta["ref"]["patella"]]
                                                                            - ends[t][meta["patella_anchor"]])
         row["ligaments_n"] = {b: round(v, 2) for b, v in sorted(bundles.items())}

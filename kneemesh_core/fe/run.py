@@ -14,7 +14,7 @@ import pyvista as pv
 
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.fe import deck
-from kneemesh_core.fe.model import Model, build
+from kneemesh_core.fe.model import PATELLOFEMORAL, Model, build
 from kneemesh_core.fe.physics import SMOKE_FLEXION_DEG, SMOKE_INCREMENT_DEG, LoadCase
 from kneemesh_core.fe.results import CONTACT_FIGURE, CONTACTS, RESULTS_FILE, write_results
 from kneemesh_core.fe.simulate import run_ccx
@@ -33,20 +33,33 @@ def read_model(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
     if not att_file.exists():
         raise KneeMeshError("anatomy_missing", "the decks need the attachment sites and frames (attachments.json): "
                             "run the whole job (bones, cartilage and anatomy) first.")
-    missing = [f"{t}.vtu" for t in CARTILAGES if not (out / "meshes" / f"{t}.vtu").exists()]
-    missing += [f"{b}.vtp" for b in BONES if not (out / "meshes" / f"{b}.vtp").exists()]
+    files = {t: out / "meshes" / f"{t}.{'vtp' if t in BONES else 'vtu'}" for t in (*BONES, *CARTILAGES)}
+    missing = [f.name for t, f in files.items() if not f.exists() and t not in PATELLOFEMORAL]
     if missing:
-        raise KneeMeshError("mesh_missing", f"the decks need every bone and cartilage mesh; missing: {', '.join(missing)}.")
-    return build({b: pv.read(out / "meshes" / f"{b}.vtp") for b in BONES},
-                 {t: pv.read(out / "meshes" / f"{t}.vtu") for t in CARTILAGES},
+        raise KneeMeshError("mesh_missing", f"the decks need every bone and cartilage mesh (a tibiofemoral model at "
+                            f"least: all but the patella's); missing: {', '.join(missing)}.")
+    present = {t: pv.read(f) for t, f in files.items() if f.exists()}
+    return build({b: present[b] for b in BONES if b in present}, {t: present[t] for t in CARTILAGES if t in present},
                  json.loads(att_file.read_text()), load)
 
 
+def tibiofemoral_reasons(m: Model) -> list[str]:
+    """Why a model is tibiofemoral only (the knee has no patella or no patellar cartilage meshed); empty when
+    it is the whole knee."""
+    if "patella" in m.ref:
+        return []
+    return ["a tibiofemoral model: the knee has no meshed patella and patellar cartilage, so the decks have no "
+            "patellofemoral joint, quadriceps or patellar ligaments"]
+
+
 def write_decks(out_dir: Path, load: LoadCase = LoadCase()) -> dict:
-    """The decks of a meshed job in ``out_dir/fe``; returns what the report says of them."""
+    """The decks of a meshed job in ``out_dir/fe``; returns what the report says of them (``review`` for a
+    tibiofemoral model, with the reason)."""
     m = read_model(out_dir, load)
     files = deck.write(m, Path(out_dir) / FE_DIR)
-    return {"files": [f"{FE_DIR}/{f.name}" for f in files], "nodes": len(m.nodes),
+    reasons = tibiofemoral_reasons(m)
+    return {"status": "review" if reasons else "ok", "reasons": reasons, "model": "tibiofemoral" if reasons else "knee",
+            "files": [f"{FE_DIR}/{f.name}" for f in files], "nodes": len(m.nodes),
             "c3d8": int(sum(len(p.elements) for p in m.parts.values())), "springs": len(m.springs),
             "contact_stiffness_n_mm3": m.contact_k, "seating": m.seating, "cartilage": load.cartilage,
             "flexion_deg": load.flexion_deg, "joint_load_n": load.joint_load_n}

@@ -125,10 +125,21 @@ def segment(step: Step) -> dict:
             "tissues_ml": job["input"]["tissues"], "plausibility": plausibility}
 
 
+def _absent(out: Path, tissue: str) -> dict | None:
+    """The report entry of a tissue the input does not label (``review``: nothing to mesh, said so; the
+    knee's other tissues, its anatomy and a tibiofemoral model go on without it), or None."""
+    if read_json(out / JOB_FILE)["input"]["tissues"].get(tissue, 0.0) > 0:
+        return None
+    return {"status": "review", "absent": True, "reasons": [f"not labelled in the input: no {tissue.replace('_', ' ')} "
+                                                             "to mesh"], "seconds": 0.0}
+
+
 def mesh_bone(step: Step) -> dict:
     """A bone's closed shell (``meshes/<bone>.vtp``, and ``.stl`` on request); returns its report entry,
     never raises."""
     out, tissue, opts = step.out, step.name, step.options
+    if (absent := _absent(out, tissue)) is not None:
+        return absent
 
     def work() -> dict:
         labels = read_label_map(out / LABELS_FILE).image
@@ -152,6 +163,8 @@ def hex_cartilage(step: Step) -> dict:
     and the unblended mesh (``work/<cartilage>.npz``); returns what the attempts gave, or the
     cartilage's failed entry (never raises)."""
     out, tissue = step.out, cartilage_of(step.name)
+    if (absent := _absent(out, tissue)) is not None:
+        return absent
 
     def work() -> dict:
         cm = mesh_cartilage(read_label_map(out / LABELS_FILE).image, tissue, step.options.hex)
@@ -173,7 +186,7 @@ def finish_cartilage(step: Step) -> dict:
     meshed = read_step(out, hex_step(tissue))
     if meshed is None or meshed["state"] != "done":
         return {"status": "failed", "code": "internal", "reason": f"the step {hex_step(tissue)} has not run.", "seconds": 0.0}
-    if meshed["result"]["status"] == "failed":  # no mesh at all: its entry says why
+    if meshed["result"]["status"] == "failed" or meshed["result"].get("absent"):  # no mesh at all: its entry says why
         return meshed["result"]
 
     def work() -> dict:
@@ -302,7 +315,7 @@ def write_decks(step: Step) -> dict:
     from kneemesh_core.fe.physics import LoadCase
     from kneemesh_core.fe.run import write_decks as write
 
-    return _guarded(lambda: {"status": "ok", **write(step.out, LoadCase(cartilage=step.options.fe_cartilage))})
+    return _guarded(lambda: write(step.out, LoadCase(cartilage=step.options.fe_cartilage)))
 
 
 def run_simulation(step: Step) -> dict:
