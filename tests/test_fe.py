@@ -440,3 +440,31 @@ def test_a_knee_without_a_patella_gets_a_tibiofemoral_model_that_runs(tmp_path):
     sim = report["simulation"]
     assert sim["completed"] and "patellofemoral" not in sim["final"] and sim["final"]["balance_error"] < MAX_BALANCE_ERROR
     assert report["verdict"]["status"] == "review"
+
+
+def test_a_load_option_changes_the_load_the_deck_applies(knee):
+    """The joint load, the quadriceps force and the flexion are options of a job (one declaration, JobRequest),
+    and of a run: a run under another load gets a model of its own beside the job's decks, whose deck applies
+    that load, and the femur carries it: the plates take about the added 500 N."""
+    from dataclasses import replace
+
+    from kneemesh_core.fe.physics import LoadCase
+    from kneemesh_core.fe.results import tibiofemoral_n
+    from kneemesh_core.fe.run import simulate
+    from kneemesh_core.job import JobRequest
+
+    assert JobRequest.build(joint_load=1500, quadriceps=200, flexion=60).job_options().load == LoadCase(
+        joint_load_n=1500.0, quadriceps_n=200.0, flexion_deg=60.0)
+    out, report = knee
+    r = simulate(out, smoke=True, load=replace(LoadCase(), joint_load_n=1500.0, quadriceps_n=200.0))
+    folder = out / "fe" / "smoke_1500N_200N_rigid"
+    ccx = (folder / "knee_ccx.inp").read_text()
+    assert "*INCLUDE, INPUT=knee_model.inp" in ccx and (folder / "knee_model.inp").exists()
+    cload = ccx.split("*CLOAD, AMPLITUDE=HOLD\n")[1].split("*")[0].strip().splitlines()
+    force = np.array([float(line.split(",")[2]) for line in cload])
+    assert np.linalg.norm(force) == pytest.approx(1500.0, abs=0.01)
+    assert "200 N at its initial length" in (folder / "knee_model.inp").read_text()
+    assert r["completed"] and r["applied_load_n"] == 1500.0 and r["quadriceps_n"] == 200.0
+    before = json.loads((out / "fe" / "smoke" / "results.json").read_text())
+    added = tibiofemoral_n(loaded(r["increments"])[0]) - tibiofemoral_n(loaded(before["increments"])[0])
+    assert 400.0 < added < 600.0, added

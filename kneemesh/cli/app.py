@@ -74,6 +74,9 @@ MESH_FLAGS = {
     "blend": (Optional[bool], job_option("blend", "--blend/--no-blend")),
     "blend_angle": (Optional[float], job_option("blend_angle", "--blend-angle")),
     "simulate": (Optional[str], job_option("simulate", "--simulate")),
+    "joint_load": (Optional[float], job_option("joint_load", "--joint-load")),
+    "quadriceps": (Optional[float], job_option("quadriceps", "--quadriceps")),
+    "flexion": (Optional[float], job_option("flexion", "--flexion")),
     "fe_cartilage": (Optional[str], job_option("fe_cartilage", "--fe-cartilage")),
     "force": (Optional[bool], job_option("force", "--force/--no-force")),
 }

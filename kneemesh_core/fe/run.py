@@ -65,25 +65,58 @@ def write_decks(out_dir: Path, load: LoadCase = LoadCase()) -> dict:
             "flexion_deg": load.flexion_deg, "joint_load_n": load.joint_load_n}
 
 
-def run_folder(smoke: bool = False, flexion_deg: float | None = None) -> str:
-    """Where a run's deck and results lie, relative to the job folder: ``fe`` (the job's own flexion),
-    ``fe/smoke`` or ``fe/flexion_<deg>``."""
-    return f"{FE_DIR}/{SMOKE_DIR}" if smoke else FE_DIR if flexion_deg is None else f"{FE_DIR}/flexion_{flexion_deg:g}"
+def run_folder(smoke: bool = False, flexion_deg: float | None = None, load: LoadCase | None = None) -> str:
+    """Where a run's deck and results lie, relative to the job folder: ``fe`` (the job's own decks), ``fe/smoke``
+    or ``fe/flexion_<deg>``, the name followed by ``_<joint load>N_<quadriceps>N_<cartilage>`` for a load case
+    other than the decks' (``load``)."""
+    if smoke:
+        name = SMOKE_DIR
+    elif flexion_deg is not None or load is not None:
+        name = f"flexion_{flexion_deg if flexion_deg is not None else load.flexion_deg:g}"
+    else:
+        return FE_DIR
+    if load is not None:
+        name += f"_{load.joint_load_n:g}N_{load.quadriceps_n:g}N_{load.cartilage}"
+    return f"{FE_DIR}/{name}"
+
+
+def deck_load(fe: Path) -> LoadCase | None:
+    """The load case of a job's decks, from their ``model.json``; None where there are no decks."""
+    meta_file = Path(fe) / deck.META_FILE
+    if not meta_file.exists():
+        return None
+    meta = json.loads(meta_file.read_text())
+    return LoadCase(joint_load_n=meta["joint_load_n"], quadriceps_n=meta["quadriceps_n"], flexion_deg=meta["flexion_deg"],
+                    cartilage=meta["cartilage"])
+
+
+def another_model(decks: LoadCase | None, load: LoadCase | None) -> bool:
+    """Whether a run under ``load`` needs a model of its own beside the job's decks (another joint load,
+    quadriceps force or cartilage: they are in the shared model; the flexion is only the wrapper's)."""
+    return decks is not None and load is not None and (load.joint_load_n, load.quadriceps_n, load.cartilage) != (
+        decks.joint_load_n, decks.quadriceps_n, decks.cartilage)
 
 
 def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = False, timeout_s: float = 1800.0,
-             load: LoadCase = LoadCase()) -> dict:
-    """Run ccx on the job's decks (writing them first if absent); ``results.json`` and ``contact.png``
-    land beside the deck that ran.  Returns the results."""
+             load: LoadCase | None = None) -> dict:
+    """Run ccx on the job's decks (writing them first if absent); ``results.json`` and ``contact.png`` land
+    beside the deck that ran.  ``load``: the load case (default: the decks'); another load, quadriceps force or
+    cartilage than the decks' gets a shared model of its own in its run folder (:func:`run_folder`).  Returns
+    the results."""
     fe = Path(out_dir) / FE_DIR
-    m = None
-    if not (fe / deck.MODEL_FILE).exists():
-        m = read_model(out_dir, load)
+    m, decks = None, deck_load(fe)
+    if decks is None:
+        m = read_model(out_dir, load or LoadCase())
         deck.write(m, fe)
-    folder = Path(out_dir) / run_folder(smoke, flexion_deg)
+        decks = m.load
+    load = load or decks
+    own = another_model(decks, load)
+    folder = Path(out_dir) / run_folder(smoke, flexion_deg, load if own else None)
     if folder != fe:
-        flex, step = (SMOKE_FLEXION_DEG, SMOKE_INCREMENT_DEG) if smoke else (flexion_deg, load.max_increment_deg)
-        deck.write(m or read_model(out_dir, load), folder, flex, step, include=f"../{deck.MODEL_FILE}")
+        flex, step = ((SMOKE_FLEXION_DEG, SMOKE_INCREMENT_DEG) if smoke else
+                      (load.flexion_deg if flexion_deg is None else flexion_deg, load.max_increment_deg))
+        model = m if m is not None and not own else read_model(out_dir, load)
+        deck.write(model, folder, flex, step, include=None if own else f"../{deck.MODEL_FILE}")
     meta_file = folder / deck.META_FILE
     if not meta_file.exists():
         raise KneeMeshError("deck_missing", f"{meta_file} is missing: write the decks again (kneemesh mesh).")

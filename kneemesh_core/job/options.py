@@ -14,6 +14,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from kneemesh_core.errors import KneeMeshError
+from kneemesh_core.fe.physics import LoadCase
 from kneemesh_core.hexmesh import BlendOptions, HexOptions
 from kneemesh_core.surfaces.tissue import SurfaceOptions
 from kneemesh_core.tissues import BONES, CARTILAGES, TISSUES
@@ -36,7 +37,7 @@ class JobOptions:
     stl: bool = False
     bundle: bool = False
     simulate: str = "none"  # or "smoke" (to 15 deg) or "full" (to 90 deg): a CalculiX run of the decks
-    fe_cartilage: str = "rigid"  # or "deformable": the cartilage of the decks
+    load: LoadCase = LoadCase()  # the decks' loads, flexion and cartilage (fe/physics.py)
     force: bool = False  # mesh an image's labels although the segmentation fails its plausibility checks
     surface: SurfaceOptions = SurfaceOptions()
     hex: HexOptions = HexOptions()
@@ -57,6 +58,8 @@ class JobOptions:
         d["hex"] = HexOptions(**d.get("hex", {}))
         if "blend" in d:
             d["blend"] = None if d["blend"] is None else BlendOptions(**d["blend"])
+        cartilage = d.pop("fe_cartilage", None)  # (records written before the load case had a home of its own)
+        d["load"] = LoadCase(**{**d.get("load", {}), **({"cartilage": cartilage} if cartilage else {})})
         return cls(**d)
 
 
@@ -90,6 +93,12 @@ class JobRequest(BaseModel):
     force: bool = Field(False, description="For an image: mesh its labels even where the segmentation fails its "
                                            "plausibility checks (the knee is then review); otherwise the job stops "
                                            "before meshing, with the reasons.")
+    joint_load: float = Field(1000.0, ge=0.0, le=6000.0, allow_inf_nan=False,
+                              description="The joint load the femur carries, N (down the tibial axis).")
+    quadriceps: float = Field(300.0, ge=0.0, le=3000.0, allow_inf_nan=False,
+                              description="The quadriceps force on the patella at its initial length, N.")
+    flexion: float = Field(90.0, ge=1.0, le=120.0, allow_inf_nan=False,
+                           description="The flexion a full run reaches from the image pose, deg.")
     fe_cartilage: Literal["rigid", "deformable"] = Field(
         "rigid", description="Cartilage in the decks: rigid (the paper's choice; contact stiffness from its layers) or deformable.")
 
@@ -107,8 +116,9 @@ class JobRequest(BaseModel):
         """The pipeline's options for this request; ``bundle`` zips the outputs (the service does)."""
         return JobOptions(
             input_type=self.input_type, model=self.model, preset=self.preset, labels=self.labels, side=self.side,
-            only=self.only, stl=self.stl, bundle=bundle, simulate=self.simulate, fe_cartilage=self.fe_cartilage,
-            force=self.force,
+            only=self.only, stl=self.stl, bundle=bundle, simulate=self.simulate, force=self.force,
+            load=LoadCase(joint_load_n=self.joint_load, quadriceps_n=self.quadriceps, flexion_deg=self.flexion,
+                          cartilage=self.fe_cartilage),
             surface=SurfaceOptions(bone_edge_mm=self.bone_edge),
             hex=HexOptions(element_size=self.element_size, layers=self.layers),
             blend=BlendOptions(angle_deg=self.blend_angle) if self.blend else None)

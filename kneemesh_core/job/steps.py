@@ -311,22 +311,21 @@ def measure_overlaps(step: Step) -> dict:
 
 
 def write_decks(step: Step) -> dict:
-    """The Abaqus and CalculiX decks of the knee in ``fe/`` (:mod:`kneemesh_core.fe`); never raises."""
-    from kneemesh_core.fe.physics import LoadCase
+    """The Abaqus and CalculiX decks of the knee in ``fe/`` (:mod:`kneemesh_core.fe`), under the job's load
+    case; never raises."""
     from kneemesh_core.fe.run import write_decks as write
 
-    return _guarded(lambda: write(step.out, LoadCase(cartilage=step.options.fe_cartilage)))
+    return _guarded(lambda: write(step.out, step.options.load))
 
 
 def run_simulation(step: Step) -> dict:
     """CalculiX on the decks (smoke: to 15 deg; full: to 90 deg); ``fe/results.json`` and
     ``fe/contact.png``.  Never raises: a failed simulation is its entry, the meshes and decks stay."""
-    from kneemesh_core.fe.physics import LoadCase
     from kneemesh_core.fe.run import run_folder, simulate, simulation_entry
 
     opts = step.options
     smoke = opts.simulate == "smoke"
-    return _guarded(lambda: simulation_entry(simulate(step.out, smoke=smoke, load=LoadCase(cartilage=opts.fe_cartilage)),
+    return _guarded(lambda: simulation_entry(simulate(step.out, smoke=smoke, load=opts.load),
                                              opts.simulate, run_folder(smoke)))
 
 
