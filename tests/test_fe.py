@@ -15,7 +15,7 @@ from kneemesh_core import KneeMeshError
 from kneemesh_core.fe import deck
 from kneemesh_core.fe.inp import set_lines
 from kneemesh_core.fe.physics import MAX_BALANCE_ERROR, MAX_PLATE_PEAK_MPA
-from kneemesh_core.fe.results import loaded, parse_dat
+from kneemesh_core.fe.results import centre_of_pressure, loaded, parse_dat
 from kneemesh_core.fe.simulate import run_ccx
 
 pytestmark = pytest.mark.xdist_group("fe")
@@ -37,10 +37,12 @@ def _block(n: int, z0: float, first_node: int, first_element: int):
     return nodes, hexes, top, bottom
 
 
-@pytest.mark.parametrize("twist_deg", [0.0, 10.0])
-def test_two_rigid_blocks_press_with_pressure_k_times_d_over_the_exact_area(tmp_path, twist_deg):
+@pytest.mark.parametrize("turn", [None, "twist", "tilt"])
+def test_two_rigid_blocks_press_with_pressure_k_times_d_over_the_exact_area(tmp_path, turn):
     """Rigid blocks pressed d = 0.01 into each other under the linear law K = 1e4: pressure K d at
-    every point and force K d A; twisted by 10 deg, the area of the squares' overlap."""
+    every point, force K d A and the centre of pressure at the face's centroid; twisted by 10 deg about
+    the press, the area of the squares' overlap, the centre of pressure still central; tilted by
+    theta = 0.005 rad about y, a pressure K (d + theta (x - 1/2)) whose centre lies at x = 1/2 + theta / (12 d)."""
     k, d = 1.0e4, 0.01
     a_nodes, a_hex, a_top, _ = _block(4, 0.0, 1, 1)
     b_nodes, b_hex, _, b_bottom = _block(4, 1.0, 1001, 101)
@@ -60,9 +62,11 @@ def test_two_rigid_blocks_press_with_pressure_k_times_d_over_the_exact_area(tmp_
           "*STEP, NLGEOM, INC=100", "*STATIC", "0.25, 1.0", "*BOUNDARY", "5001, 1, 3, 0.0", "5003, 1, 3, 0.0",
           "5002, 1, 2, 0.0", "5004, 1, 3, 0.0", "*BOUNDARY, AMPLITUDE=RAMP", f"5002, 3, 3, {-d}",
           "*CONTACT PRINT, SLAVE=SB, MASTER=SA", "CF", "*CONTACT PRINT", "CSTR", "*END STEP"]
-    if twist_deg:
+    twist_deg, tilt = 10.0, 0.005
+    if turn:
         w += ["*STEP, NLGEOM, INC=100", "*STATIC", "0.1, 1.0", "*BOUNDARY, AMPLITUDE=RAMP",
-              f"5004, 3, 3, {np.radians(twist_deg):.6f}", "*CONTACT PRINT, SLAVE=SB, MASTER=SA", "CF", "*END STEP"]
+              f"5004, 3, 3, {np.radians(twist_deg):.6f}" if turn == "twist" else f"5004, 2, 2, {tilt}",
+              "*CONTACT PRINT, SLAVE=SB, MASTER=SA", "CF", "*END STEP"]
     (tmp_path / "blocks.inp").write_text("\n".join(w) + "\n")
     run = run_ccx(tmp_path, "blocks", timeout_s=120)
     assert run.completed, run.reason
@@ -71,6 +75,8 @@ def test_two_rigid_blocks_press_with_pressure_k_times_d_over_the_exact_area(tmp_
     assert pressed["area"] == pytest.approx(1.0, rel=1e-6)
     assert -pressed["normal_force"] == pytest.approx(k * d * 1.0, rel=1e-6)
     assert all(p == pytest.approx(k * d, rel=1e-6) for _, p in dat["stress"][1.0])
+    cop = centre_of_pressure(pressed["force"], pressed["moment"], pressed["centre"], pressed["normal"])
+    np.testing.assert_allclose(cop, [0.5, 0.5, 1.0 - d], atol=1e-6)
     # ccx stopped at a time limit while writing: the cut increment (and, unsure where the cut fell,
     # at most the one before) is dropped, the rest read as before
     text = (tmp_path / "blocks.dat").read_text()
@@ -81,9 +87,14 @@ def test_two_rigid_blocks_press_with_pressure_k_times_d_over_the_exact_area(tmp_
         assert last not in partial["contact"] and last not in partial["stress"]
         kept = partial["contact"]
         assert all(dat["contact"][t] == v for t, v in kept.items()) and len(kept) >= len(dat["contact"]) - 2
-    if twist_deg:  # the overlap of the two squares, one turned about their common centre
-        twisted = dat["contact"][max(dat["contact"])]["SB"]
-        assert twisted["area"] == pytest.approx(_overlap(twist_deg), abs=0.01)  # pairing lags one increment
+    turned = dat["contact"][max(dat["contact"])]["SB"]
+    cop = centre_of_pressure(turned["force"], turned["moment"], turned["centre"], turned["normal"])
+    if turn == "twist":  # the overlap of the two squares, one turned about their common centre
+        assert turned["area"] == pytest.approx(_overlap(twist_deg), abs=0.01)  # pairing lags one increment
+        np.testing.assert_allclose(cop[:2], [0.5, 0.5], atol=1e-3)
+    if turn == "tilt":  # B's face, turned about its body's centre 0.5 above, slides by theta / 2 (0.0025)
+        assert -turned["normal_force"] == pytest.approx(k * d, rel=0.01)
+        assert cop[0] == pytest.approx(0.5 + tilt / (12 * d), abs=0.004) and cop[1] == pytest.approx(0.5, abs=1e-4)
 
 
 def _overlap(deg: float) -> float:

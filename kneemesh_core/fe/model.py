@@ -133,6 +133,8 @@ def build(bones: dict[str, pv.PolyData], cartilages: dict[str, pv.UnstructuredGr
                      "axes_lps": {"X_right": rot[:, 0].round(6).tolist(), "Y_anterior": rot[:, 1].round(6).tolist(),
                                   "Z_superior": rot[:, 2].round(6).tolist()}})
     frames = attachments["frames"]
+    m.frame["tibia"] = {"origin_lps_mm": np.round(frames["tibia"]["origin_mm"], 4).tolist(),
+                        "axes_lps": {a: np.round(frames["tibia"]["axes"][a], 6).tolist() for a in ("lateral", "anterior", "proximal")}}
     present = [b for b in BONES if b in bones]
     _add_bones(m, {b: to_deck(bones[b].points) for b in present}, {b: bones[b].regular_faces for b in present})
     for tissue in (t for t in CARTILAGES if t in cartilages):

@@ -20,12 +20,18 @@ from kneemesh_core.fe.physics import (MAX_BALANCE_ERROR, MAX_PLATE_PEAK_MPA, MAX
 from kneemesh_core.io.files import atomic_write_json
 
 RESULTS_FILE, CONTACT_FIGURE = "results.json", "contact.png"
+#: The contacts an increment reports (the surrogates' where the model has them): the tibiofemoral ones
+#: (the plates and the meniscus surrogates), then the patella's on the femur (its cartilage and the
+#: prefemoral sheet).
+TIBIOFEMORAL = ("medial", "lateral", "medial_meniscus", "lateral_meniscus")
+CONTACTS = (*TIBIOFEMORAL, "patellofemoral")
 _STATS = re.compile(r"^\s*statistics for slave set (\S+), master set (\S+) and time\s+(\S+)")
 _TABLE = re.compile(r"^\s*(displacements|forces|total force|contact stress)\b.*?(?:for set (\S+)|for all contact elements)\s+and time\s+(\S+)")
 
 
 def parse_dat(path: Path, stopped: bool = False) -> dict:
-    """{"contact": {time: {slave: {force, area, normal_force}}}, "stress": {time: [(element, pressure)]},
+    """{"contact": {time: {slave: {force, moment, centre, normal, area, normal_force}}}, "stress": {time:
+    [(element, pressure)]},
     "nodes": {(table, set): {time: {node or "total": (3,)}}}}.  ``stopped``: ccx did not finish (a
     time limit, a kill), so the last increment in the file may be cut short anywhere, even inside a
     number: it is dropped, as is a block found cut short in any file."""
@@ -45,11 +51,12 @@ def parse_dat(path: Path, stopped: bool = False) -> dict:
                 if parts and all(re.fullmatch(r"[-+0-9.Ee]+|NaN|nan|-?Infinity|-?inf", p) for p in parts):
                     numbers.append([float(p) for p in parts])
                 j += 1
-            if len(numbers) < 4 or len(numbers[0]) < 3 or len(numbers[3]) < 2:
+            if len(numbers) < 4 or len(numbers[0]) < 6 or len(numbers[1]) < 6 or len(numbers[3]) < 2:
                 cut_at = float(m.group(3))
                 break
-            force, _, _, anf = numbers
-            contact[float(m.group(3))][m.group(1)] = {"force": force[:3], "area": anf[0], "normal_force": anf[1]}
+            force, centre, _, anf = numbers
+            contact[float(m.group(3))][m.group(1)] = {"force": force[:3], "moment": force[3:6], "centre": centre[:3],
+                                                      "normal": centre[3:6], "area": anf[0], "normal_force": anf[1]}
             i, current = j, None
             continue
         m = _TABLE.match(line)
@@ -83,6 +90,39 @@ def parse_dat(path: Path, stopped: bool = False) -> dict:
     return {"contact": dict(contact), "stress": dict(stress), "nodes": nodes}
 
 
+def centre_of_pressure(force: np.ndarray, moment: np.ndarray, centre: np.ndarray, normal: np.ndarray) -> np.ndarray | None:
+    """Where a contact's resultant acts (3,), mm: its line of action, from the total ``force`` (3,), N, and
+    its ``moment`` about the origin (3,), N mm (ccx's CF statistics), met by the plane through the contact
+    area's ``centre`` (3,), mm, normal to its mean ``normal`` (3,): the pressure-weighted centroid of the
+    contact where the pressure acts along the normal.  None without contact (ccx prints NaN)."""
+    f, mo, c, n = (np.asarray(v, float) for v in (force, moment, centre, normal))
+    if not (np.isfinite(f).all() and np.isfinite(mo).all() and np.isfinite(c).all() and np.isfinite(n).all()):
+        return None
+    ff = float(f @ f)
+    if ff <= 0.0 or abs(f @ n) < 1e-9 * np.sqrt(ff):
+        return None
+    nearest = np.cross(f, mo) / ff  # the line's point nearest the origin
+    return nearest + f * float((c - nearest) @ n) / float(f @ n)
+
+
+def located(contact: dict, frame: dict, pair: str) -> dict:
+    """A contact's centre of pressure (:func:`centre_of_pressure`, from the deck frame) in the input's LPS
+    frame (``cop_lps_mm``) and, for a tibiofemoral contact, in the tibial frame (``cop_tibia_mm``: lateral,
+    anterior and proximal of the tibial frame's origin, mm; ``frame["tibia"]``, from the anatomy);
+    None without contact."""
+    cop = centre_of_pressure(*(contact.get(k, [np.nan] * 3) for k in ("force", "moment", "centre", "normal")))
+    axes = frame["axes_lps"]
+    lps = None if cop is None else np.asarray(frame["origin_lps_mm"]) + np.column_stack(
+        [axes["X_right"], axes["Y_anterior"], axes["Z_superior"]]) @ cop
+    out = {"cop_lps_mm": None if lps is None else np.round(lps, 3).tolist()}
+    if pair in TIBIOFEMORAL and "tibia" in frame:
+        tibia = frame["tibia"]
+        out["cop_tibia_mm"] = None if lps is None else np.round(
+            [(lps - tibia["origin_lps_mm"]) @ np.asarray(tibia["axes_lps"][a]) for a in ("lateral", "anterior", "proximal")],
+            3).tolist()
+    return out
+
+
 #: The step time at which the seating step ends with the whole joint load on (ccx's total time): the
 #: increments from there on are loaded; those before are ccx's cut-back seating increments, not trusted.
 LOADED_AT = 1.0
@@ -114,7 +154,7 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
             peak = max((p for e, p in pressures if lo <= e <= hi), default=0.0)
             row[name] = {"force_n": round(force, 3), "area_mm2": round(area, 3),
                          "mean_pressure_mpa": round(force / area, 4) if area > 0 else 0.0,
-                         "peak_pressure_mpa": round(max(peak, 0.0), 4)}
+                         "peak_pressure_mpa": round(max(peak, 0.0), 4), **located(c, meta["frame"], name)}
             femur_force -= np.nan_to_num(np.asarray(c["force"], float))  # the femur feels the opposite
         bundles: dict = defaultdict(float)
         if t in ends:
@@ -144,13 +184,6 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
         row["balance_error"] = round(float(np.linalg.norm(femur_force) / meta["joint_load_n"]), 4)
         out.append(row)
     return out
-
-
-#: The contacts an increment reports (the surrogates' where the model has them): the tibiofemoral ones
-#: (the plates and the meniscus surrogates), then the patella's on the femur (its cartilage and the
-#: prefemoral sheet).
-TIBIOFEMORAL = ("medial", "lateral", "medial_meniscus", "lateral_meniscus")
-CONTACTS = (*TIBIOFEMORAL, "patellofemoral")
 
 
 def tibiofemoral_n(row: dict) -> float:
