@@ -105,6 +105,28 @@ def stability(path: str) -> dict:
     return out
 
 
+def flexion_summary(ok: list[dict]) -> str:
+    """The image poses' anatomical flexion: its range, how far two visits of one OAI knee differ (the
+    files' subject ids, ``OAI_AKOA_<id>_<visit>``) and how far a knee and its mirror image differ."""
+    flex = np.array([r["angles"]["flexion"] for r in ok])
+    by = {}
+    for r in ok:
+        by.setdefault(r["knee"], {})[r["mirrored"]] = r["angles"]["flexion"]
+    mirror = [abs(v[True] - v[False]) for v in by.values() if len(v) == 2]
+    visits = {}
+    for r in ok:
+        parts = r["knee"].split("_")
+        if r["knee"].startswith("OAI_AKOA_") and not r["mirrored"]:
+            visits.setdefault(parts[2], []).append(r["angles"]["flexion"])
+    between = [abs(v[0] - v[1]) for v in visits.values() if len(v) == 2]
+    text = f"anatomical flexion of the image pose: min {flex.min():.1f}, median {np.median(flex):.1f}, max {flex.max():.1f} deg"
+    if between:
+        text += f"; two visits of one knee ({len(between)}) differ median {np.median(between):.1f}, max {max(between):.1f} deg"
+    if mirror:
+        text += f"; a knee and its mirror image differ median {np.median(mirror):.1f}, max {max(mirror):.1f} deg"
+    return text
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("maps", nargs="*")
@@ -165,6 +187,7 @@ def main() -> None:
                   f"shape agrees with the side: {sum(r['shape'].get('side') == r['side'] for r in ok)}/{len(ok)}; "
                   f"anatomy step (one process) median {np.median(secs):.2f} s, max {secs.max():.2f} s; "
                   f"side decision at ingest median {np.median([r['ingest_seconds'] for r in ok]):.2f} s")
+    console.print(flexion_summary(ok), highlight=False)
     for r in ok:
         if r["violations"] or r["status"] != "ok":
             console.print(f"{r['knee']}{' (mirror)' if r['mirrored'] else ''}: {'; '.join(r['reasons'])}", highlight=False)

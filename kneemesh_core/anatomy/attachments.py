@@ -38,6 +38,12 @@ from kneemesh_core.anatomy.register import Registration, register, shape_verdict
 #: 126 real maps here and their mirror images the largest were femur 1.3, tibia 1.6, patella 1.8 mm
 #: (99th percentiles 1.2, 1.5, 1.7); these leave about 40 % of room above them.
 MAX_PLAUSIBLE_RMS_MM = {"femur": 1.8, "tibia": 2.2, "patella": 2.5}
+#: Where each bone's long axis comes from when its registration is plausible (else the shaft in view,
+#: :mod:`.frames`): the template's proximal axis, so the flexion of two knees means the same.  Lenhart's
+#: tibial frame is his model's (the whole tibia); the femur template's is the sample femur's, set so that
+#: the sample's femur and tibia stand in its image pose (scripts/build_anatomy_template.py).
+LONG_AXIS_SOURCE = {"femur": "the registered template's (the femur template's frame)",
+                    "tibia": "the registered template's (Lenhart 2015 tibial frame)"}
 
 
 @dataclass
@@ -103,7 +109,10 @@ def _register(template, pts: dict[str, np.ndarray], side: str, plates) -> tuple[
     axes = coarse_axes(pts["femur"], pts["tibia"], pts.get("patella"))
     mirrored = side == "left"
     regs: dict[str, Registration] = {b: register(b, template.points(b), pts[b], axes, mirrored) for b in pts}
-    frames = {"femur": femur_frame(pts["femur"], axes, side), "tibia": tibia_frame(pts["tibia"], axes, side, plates)}
+    long = {b: (regs[b].axis("proximal"), LONG_AXIS_SOURCE[b]) for b in ("femur", "tibia")
+            if regs[b].rms_mm <= MAX_PLAUSIBLE_RMS_MM[b]}
+    frames = {"femur": femur_frame(pts["femur"], axes, side, long.get("femur")),
+              "tibia": tibia_frame(pts["tibia"], axes, side, plates, long.get("tibia"))}
     if "patella" in pts:
         frames["patella"] = patella_frame(pts["patella"], axes, side, frames["femur"])
     fit = sum(regs[b].rms_similarity_mm for b in ("tibia", "femur"))

@@ -8,12 +8,18 @@ other, and every angle below is defined from the names, so it means the same on 
 - :func:`coarse_axes` - the knee's anterior, superior and patient-right directions from where its
   bones lie (femur above tibia, patella in front), whatever the image's own axes;
 - :func:`femur_frame` - flexion axis through the centres of spheres fitted to the posterior
-  condyles (the geometric centre axis), origin midway between them, shaft axis as far as the
-  field of view shows it;
+  condyles (the geometric centre axis), origin midway between them, and a long axis;
 - :func:`tibia_frame` - medial-lateral axis through the centres of the two plateaus, origin
-  between them, long axis from the shaft below the plateau;
+  between them, and a long axis;
 - :func:`patella_frame` - centroid, the normal of the patella's plate, and the femur's lateral direction;
 - :func:`grood_suntay` - flexion, varus and internal rotation of the tibia on the femur.
+
+The long axes come from the anatomy template registered to the bone (``long_axis``, see
+:mod:`.attachments`): an image's field of view shows 35-80 mm of each shaft, still in the
+metaphysis, whose flare tilts the line through its cross-section centres by tens of degrees (on 39
+OAI maps the flexion read that way ran from -23 to +26 deg and moved 2-20 deg between two visits of
+one knee; through the template, -21 to +0.5 deg and 0-4.3 deg between visits).
+The shaft's cross-section centres remain where no template axis is given.
 """
 
 from __future__ import annotations
@@ -126,13 +132,14 @@ def _shaft_axis(points: np.ndarray, hint: np.ndarray, slab_mm: float = 5.0) -> n
     return axis if axis @ hint > 0 else -axis
 
 
-def femur_frame(femur: np.ndarray, axes: CoarseAxes, side: str) -> Frame:
+def femur_frame(femur: np.ndarray, axes: CoarseAxes, side: str, long_axis: tuple[np.ndarray, str] | None = None) -> Frame:
     """Femoral frame from the femur's surface points (N, 3), LPS mm.
 
     The flexion axis runs through the centres of spheres fitted to the posterior parts of the
-    two condyles (distal 35 mm, behind the condyles' middle); the origin lies midway; the shaft
-    axis runs through the centres of the femur's cross-sections from 25 mm above the origin, where
-    the field of view shows 15 mm or more of it, else the knee's superior direction.
+    two condyles (distal 35 mm, behind the condyles' middle); the origin lies midway; the long
+    axis is ``long_axis`` (a unit vector (3,) towards the hip and where it comes from), else the
+    line through the centres of the femur's cross-sections from 25 mm above the origin, where the
+    field of view shows 15 mm or more of it, else the knee's superior direction.
     """
     lateral_dir = axes.lateral(side)
     rel = femur - axes.centre
@@ -150,22 +157,30 @@ def femur_frame(femur: np.ndarray, axes: CoarseAxes, side: str) -> Frame:
         facts[f"{name}_condyle_fit_rms_mm"] = round(rms, 3)
     origin = 0.5 * (centres["medial"] + centres["lateral"])
     lateral = centres["lateral"] - centres["medial"]
-    shaft = _shaft_axis(femur[(femur - origin) @ axes.superior > 25.0], axes.superior)
-    facts["shaft_axis"] = ("through the cross-section centres from 25 mm above the origin" if shaft is not None
-                           else "knee superior (shaft too short in view)")
     facts["flexion_axis"] = "through the posterior condyle sphere centres"
-    return _named(origin, lateral, axes.superior if shaft is None else shaft, axes.anterior, facts)
+    proximal, facts["long_axis"] = long_axis or _shaft_or_superior(
+        femur[(femur - origin) @ axes.superior > 25.0], axes.superior, "from 25 mm above the origin")
+    return _named(origin, lateral, proximal, axes.anterior, facts)
 
 
-def tibia_frame(tibia: np.ndarray, axes: CoarseAxes, side: str,
-                plates: tuple[np.ndarray, np.ndarray] | None = None) -> Frame:
+def _shaft_or_superior(shaft_points: np.ndarray, superior: np.ndarray, where: str) -> tuple[np.ndarray, str]:
+    """A long axis towards ``superior`` through a shaft's cross-section centres, else ``superior``."""
+    shaft = _shaft_axis(shaft_points, superior)
+    if shaft is None:
+        return superior, "knee superior (shaft too short in view)"
+    return shaft, f"through the shaft's cross-section centres {where}"
+
+
+def tibia_frame(tibia: np.ndarray, axes: CoarseAxes, side: str, plates: tuple[np.ndarray, np.ndarray] | None = None,
+                long_axis: tuple[np.ndarray, str] | None = None) -> Frame:
     """Tibial frame from the tibia's surface points (N, 3), LPS mm.
 
     ``plates``: points of the medial and lateral tibial cartilage (their centroids are the
     plateau centres); without them, the two halves of the tibia's top 20 mm either side of its
     principal axis across the knee.  The medial-lateral axis joins the plateau centres, the
-    origin lies midway, and the long axis runs through the centres of the tibia's cross-sections
-    from 25 mm below the plateau (else the knee's superior direction).
+    origin lies midway; the long axis is ``long_axis`` (a unit vector (3,), proximal, and where it
+    comes from), else the line through the centres of the tibia's cross-sections from 25 mm
+    below the plateau (else the knee's superior direction).
     """
     lateral_dir = axes.lateral(side)
     top = (tibia - axes.centre) @ axes.superior
@@ -181,12 +196,9 @@ def tibia_frame(tibia: np.ndarray, axes: CoarseAxes, side: str,
         medial_c, lateral_c = cap.mean(0) - across * abs(l[l < 0].mean()), cap.mean(0) + across * l[l >= 0].mean()
         source = "the principal axis of the tibia's top 20 mm"
     origin = 0.5 * (medial_c + lateral_c)
-    below = (tibia - origin) @ axes.superior < -25.0
-    shaft = _shaft_axis(tibia[below], axes.superior)
-    facts = {"plateau_centres": source,
-             "shaft_axis": ("through the cross-section centres from 25 mm below the plateau" if shaft is not None
-                            else "knee superior (shaft too short in view)")}
-    return _named(origin, lateral_c - medial_c, axes.superior if shaft is None else shaft, axes.anterior, facts)
+    proximal, how = long_axis or _shaft_or_superior(tibia[(tibia - origin) @ axes.superior < -25.0], axes.superior,
+                                                   "from 25 mm below the plateau")
+    return _named(origin, lateral_c - medial_c, proximal, axes.anterior, {"plateau_centres": source, "long_axis": how})
 
 
 def patella_frame(patella: np.ndarray, axes: CoarseAxes, side: str, femur: Frame | None = None) -> Frame:

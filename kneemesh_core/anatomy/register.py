@@ -23,6 +23,8 @@ from kneemesh_core.anatomy.frames import CoarseAxes
 #: The part of each bone that is registered, by distance along the knee's superior axis: the
 #: proximal tibia, the distal femur, the whole patella (mm from the bone's joint end).
 CROP_MM = {"tibia": 55.0, "femur": 55.0, "patella": None}
+#: At most this many times the subject is cut again square to the long axis just found and registered anew.
+RECROPS = 4
 #: Pairs kept each ICP round: the closest fraction.
 TRIM = 0.9
 #: Relative difference of the right and mirrored residuals needed to call a side by shape.
@@ -77,6 +79,13 @@ class Registration:
         x = self.similarity.apply(p)
         return x + _field(x, self.controls, self.moves, self.sigma_mm)
 
+    def axis(self, name: str) -> np.ndarray:
+        """The template's ``anterior``, ``proximal`` or ``lateral`` axis (its x, y, z; see
+        :mod:`.template`) placed on the subject by the similarity: a unit vector (3,), LPS.  The
+        mirrored template's lateral is its -z, so the named axis means the same on either side."""
+        column = self.similarity.rotation[:, ("anterior", "proximal", "lateral").index(name)]
+        return -column if self.mirrored and name == "lateral" else column
+
     def facts(self) -> dict:
         return {"scale": round(self.similarity.scale, 4), "rms_similarity_mm": round(self.rms_similarity_mm, 3),
                 "rms_mm": round(self.rms_mm, 3), "non_rigid": bool(len(self.controls)), "mirrored": self.mirrored}
@@ -125,6 +134,25 @@ def register(bone: str, template: np.ndarray, subject: np.ndarray, axes: CoarseA
     scale = float(spread_s / spread_t)
     sim = Similarity(scale, rot, s_crop.mean(0) - scale * rot @ t_crop.mean(0))
     tree = cKDTree(t_crop)
+    sim = _icp(tree, t_crop, s_crop, sim, iterations)
+    for _ in range(RECROPS if CROP_MM[bone] is not None else 0):
+        # the subject cut again square to the bone's own long axis as placed, not the knee's superior:
+        # a bone cut obliquely pulls the template towards the cut (a tibia swung 20 deg read 15)
+        axis = sim.rotation @ up
+        s_crop = _crop(subject, axis, joint_end_top, CROP_MM[bone])
+        sim = _icp(tree, t_crop, s_crop, sim, iterations)
+        if (sim.rotation @ up) @ axis > np.cos(np.radians(0.5)):
+            break
+    rms_sim = _rms_to(s_crop, tree, sim)
+    reg = Registration(bone, mirrored, sim, rms_sim, rms_sim)
+    if refine:
+        _refine(reg, t_crop, s_crop)
+    return reg
+
+
+def _icp(tree: cKDTree, t_crop: np.ndarray, s_crop: np.ndarray, sim: Similarity, iterations: int) -> Similarity:
+    """Trimmed similarity ICP from ``sim``: the subject's points (N, 3) paired with their nearest template
+    points (``tree`` over ``t_crop``), the worst pairs (1 - :data:`TRIM`) left out, Umeyama each round."""
     last = np.inf
     for _ in range(iterations):
         d, j = tree.query(sim.inverse(s_crop))
@@ -134,11 +162,7 @@ def register(bone: str, template: np.ndarray, subject: np.ndarray, axes: CoarseA
         if last - rms < 1e-4:
             break
         last = rms
-    rms_sim = _rms_to(s_crop, tree, sim)
-    reg = Registration(bone, mirrored, sim, rms_sim, rms_sim)
-    if refine:
-        _refine(reg, t_crop, s_crop)
-    return reg
+    return sim
 
 
 def _refine(reg: Registration, t_crop: np.ndarray, s_crop: np.ndarray, sigmas=(12.0, 8.0, 5.0),
