@@ -14,7 +14,7 @@ from conftest import SAMPLE, real
 from kneemesh_core import KneeMeshError
 from kneemesh_core.fe import deck
 from kneemesh_core.fe.inp import set_lines
-from kneemesh_core.fe.physics import MAX_BALANCE_ERROR, MAX_PLATE_PEAK_MPA
+from kneemesh_core.fe.physics import MAX_BALANCE_ERROR, MAX_PLATE_PEAK_MPA, LoadCase
 from kneemesh_core.fe.results import centre_of_pressure, loaded, parse_dat
 from kneemesh_core.fe.simulate import run_ccx
 
@@ -315,6 +315,15 @@ def test_smoke_simulation_of_a_real_knee_balances_with_physiological_contact(kne
         assert rings < 0.4 * (rings + inc["medial"]["force_n"] + inc["lateral"]["force_n"]), inc
     assert r["physiological"] and report["simulation"]["status"] == "ok", r["physiology_reasons"]
     assert report["fe"]["seating"]["femur_shift_mm"] == pytest.approx(r["seating"]["femur_shift_mm"])
+    image = json.loads((out / "attachments.json").read_text())["angles_deg"]["flexion"]
+    for inc in on:  # flexion from the image pose, and anatomically: the image pose's plus the run's
+        assert inc["anatomical_flexion_deg"] == pytest.approx(image + inc["flexion_deg"], abs=2e-3), inc
+    # the joint load passes the default offset medial of the knee: on the sample, the medial compartment
+    # (plate and ring) carries the larger share in extension, as in the paper's simulations
+    first = on[0]
+    medial = first["medial"]["force_n"] + first["medial_meniscus"]["force_n"]
+    assert r["joint_load"]["medial_offset_mm"] == LoadCase().medial_offset_mm > 0
+    assert medial > first["lateral"]["force_n"] + first["lateral_meniscus"]["force_n"], first
 
 
 def test_a_run_whose_femur_loses_the_tibia_is_not_completed():
@@ -454,28 +463,46 @@ def test_a_knee_without_a_patella_gets_a_tibiofemoral_model_that_runs(tmp_path):
 
 
 def test_a_load_option_changes_the_load_the_deck_applies(knee):
-    """The joint load, the quadriceps force and the flexion are options of a job (one declaration, JobRequest),
-    and of a run: a run under another load gets a model of its own beside the job's decks, whose deck applies
-    that load, and the femur carries it: the plates take about the added 500 N."""
+    """The joint load, its medial offset, the quadriceps force and the flexion are options of a job (one
+    declaration, JobRequest), and of a run: a run under another load gets a model of its own beside the
+    job's decks, whose deck applies that load and its moment, and the femur carries it: the plates take
+    about the added 500 N, and the load 10 mm further medial moves a tenth of it to the medial compartment."""
     from dataclasses import replace
 
-    from kneemesh_core.fe.physics import LoadCase
     from kneemesh_core.fe.results import tibiofemoral_n
-    from kneemesh_core.fe.run import simulate
+    from kneemesh_core.fe.run import run_folder, simulate
     from kneemesh_core.job import JobRequest
 
-    assert JobRequest.build(joint_load=1500, quadriceps=200, flexion=60).job_options().load == LoadCase(
-        joint_load_n=1500.0, quadriceps_n=200.0, flexion_deg=60.0)
+    assert JobRequest.build(joint_load=1500, medial_offset=5, quadriceps=200, flexion=60).job_options().load == LoadCase(
+        joint_load_n=1500.0, medial_offset_mm=5.0, quadriceps_n=200.0, flexion_deg=60.0)
     out, report = knee
-    r = simulate(out, smoke=True, load=replace(LoadCase(), joint_load_n=1500.0, quadriceps_n=200.0))
-    folder = out / "fe" / "smoke_1500N_200N_rigid"
+    offset = LoadCase().medial_offset_mm + 10.0
+    load = replace(LoadCase(), joint_load_n=1500.0, quadriceps_n=200.0, medial_offset_mm=offset)
+    r = simulate(out, smoke=True, load=load)
+    folder = out / run_folder(True, None, load)
+    assert folder.name == f"smoke_1500N_200N_{offset:g}mm_rigid"
     ccx = (folder / "knee_ccx.inp").read_text()
     assert "*INCLUDE, INPUT=knee_model.inp" in ccx and (folder / "knee_model.inp").exists()
-    cload = ccx.split("*CLOAD, AMPLITUDE=HOLD\n")[1].split("*")[0].strip().splitlines()
-    force = np.array([float(line.split(",")[2]) for line in cload])
+    meta = json.loads((folder / "model.json").read_text())
+    cload = [line.split(",") for line in ccx.split("*CLOAD, AMPLITUDE=HOLD\n")[1].split("*")[0].strip().splitlines()]
+    force = np.array([float(v) for n, _, v in cload if int(n) == meta["ref"]["femur"]])
+    moment = {int(d): float(v) for n, d, v in cload if int(n) == meta["rot"]["femur"]}
     assert np.linalg.norm(force) == pytest.approx(1500.0, abs=0.01)
+    # the load's line passes medial of the femur's node (a right knee's medial side is deck -X): the moment of
+    # the force there, about the anterior axis (deck Y) the medial side down
+    expected = np.cross([-offset, 0.0, 0.0], force)
+    np.testing.assert_allclose([moment.get(d, 0.0) for d in (1, 2, 3)], expected, atol=0.01)
+    assert expected[1] < -0.9 * 1500.0 * offset
+    assert r["joint_load"]["adduction_moment_nm"] == pytest.approx(-expected[1] / 1000.0, abs=0.01)
     assert "200 N at its initial length" in (folder / "knee_model.inp").read_text()
     assert r["completed"] and r["applied_load_n"] == 1500.0 and r["quadriceps_n"] == 200.0
     before = json.loads((out / "fe" / "smoke" / "results.json").read_text())
-    added = tibiofemoral_n(loaded(r["increments"])[0]) - tibiofemoral_n(loaded(before["increments"])[0])
+    first, base = loaded(r["increments"])[0], loaded(before["increments"])[0]
+    added = tibiofemoral_n(first) - tibiofemoral_n(base)
     assert 400.0 < added < 600.0, added
+
+    def medial_share(row):
+        return (row["medial"]["force_n"] + row.get("medial_meniscus", {}).get("force_n", 0.0)) / tibiofemoral_n(row)
+
+    assert medial_share(first) > medial_share(base) + 0.08, (medial_share(first), medial_share(base))
+

@@ -75,6 +75,7 @@ MESH_FLAGS = {
     "blend_angle": (Optional[float], job_option("blend_angle", "--blend-angle")),
     "simulate": (Optional[str], job_option("simulate", "--simulate")),
     "joint_load": (Optional[float], job_option("joint_load", "--joint-load")),
+    "medial_offset": (Optional[float], job_option("medial_offset", "--medial-offset")),
     "quadriceps": (Optional[float], job_option("quadriceps", "--quadriceps")),
     "flexion": (Optional[float], job_option("flexion", "--flexion")),
     "fe_cartilage": (Optional[str], job_option("fe_cartilage", "--fe-cartilage")),

@@ -108,11 +108,12 @@ def simulate(
     smoke: bool = typer.Option(False, "--smoke", help="A few increments to 15 deg: a quick proof that the deck runs."),
     timeout: float = typer.Option(1800.0, "--timeout", min=10.0, help="Stop ccx after this many seconds."),
     joint_load: Optional[float] = job_option("joint_load", "--joint-load"),
+    medial_offset: Optional[float] = job_option("medial_offset", "--medial-offset"),
     quadriceps: Optional[float] = job_option("quadriceps", "--quadriceps"),
 ):
     """Run CalculiX on a job's decks (fe/knee_ccx.inp): contact forces, areas and pressures over flexion
-    in fe/results.json and fe/contact.png (fe/smoke/ for --smoke); another load or quadriceps force than the
-    decks' runs a model of its own in its own folder (fe/smoke_<load>N_<quadriceps>N_<cartilage>/, say)."""
+    in fe/results.json and fe/contact.png (fe/smoke/ for --smoke); another load, medial offset or quadriceps
+    force than the decks' runs a model of its own in its own folder (fe/smoke_1500N_300N_10mm_rigid/, say)."""
     from dataclasses import replace
 
     from kneemesh_core.fe.run import (FE_DIR, another_model, deck_load, run_folder, simulate as run_simulation,
@@ -121,11 +122,11 @@ def simulate(
     with clear_errors():
         decks = deck_load(job_dir / FE_DIR)
         load = None
-        if joint_load is not None or quadriceps is not None:
-            request = JobRequest.build(joint_load=joint_load, quadriceps=quadriceps)  # the bounds of a job's options
-            base = decks or request.job_options().load
-            load = replace(base, **{k: v for k, v in (("joint_load_n", joint_load), ("quadriceps_n", quadriceps))
-                                    if v is not None})
+        asked = {"joint_load_n": joint_load, "medial_offset_mm": medial_offset, "quadriceps_n": quadriceps}
+        if any(v is not None for v in asked.values()):
+            request = JobRequest.build(joint_load=joint_load, medial_offset=medial_offset,
+                                       quadriceps=quadriceps)  # the bounds of a job's options
+            load = replace(decks or request.job_options().load, **{k: v for k, v in asked.items() if v is not None})
         r = run_simulation(job_dir, flexion_deg=to, smoke=smoke, timeout_s=timeout, load=load)
     entry = simulation_entry(r, "smoke" if smoke else "flexion", run_folder(smoke, to, load if another_model(decks, load) else None))
     out.print(f"simulation: {entry['status']}: {STAGES[SIMULATE].summary(entry)}"

@@ -26,7 +26,7 @@ def deck(m: Model, include: str) -> str:
         return m.ref[body], axis + (1 if kind == "translation" else 4)
 
     w = ["*HEADING", f"KneeMesh {__version__} knee, Abaqus/Explicit dialect: {lc.flexion_deg:g} deg flexion under "
-         f"{lc.joint_load_n:g} N, cartilage {lc.cartilage}", f"*INCLUDE, INPUT={include}"]
+         f"{lc.joint_load_n:g} N ({lc.medial_offset_mm:g} mm medial), cartilage {lc.cartilage}", f"*INCLUDE, INPUT={include}"]
     eid = m.next_element
     for b in m.bone_triangles:
         tris = m.bone_triangles[b]
@@ -46,7 +46,7 @@ def deck(m: Model, include: str) -> str:
     w += ["*AMPLITUDE, NAME=SMOOTH, DEFINITION=SMOOTH STEP", "0.0, 0.0, 1.0, 1.0",
           "*STEP, NAME=SEAT", "*DYNAMIC, EXPLICIT", ", 0.2", "*FIXED MASS SCALING, DT=1.0e-5, TYPE=BELOW MIN",
           "*BOUNDARY", f"{m.ref[FIXED_BODY]}, 1, 6, 0.0", f"{driven}, {dof}, {dof}, 0.0",
-          "*CLOAD, AMPLITUDE=SMOOTH", *inp.joint_load(m),
+          "*CLOAD, AMPLITUDE=SMOOTH", *inp.joint_load(m, dof_of),
           "*OUTPUT, FIELD, NUMBER INTERVAL=10", "*NODE OUTPUT", "U, RF", "*CONTACT OUTPUT", "CSTRESS, CAREA",
           "*OUTPUT, HISTORY, TIME INTERVAL=0.005", "*NODE OUTPUT, NSET=REFS", "U, UR", "*ENERGY OUTPUT", "ALLKE, ALLIE",
           "*END STEP",

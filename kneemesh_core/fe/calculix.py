@@ -37,7 +37,7 @@ def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str) -
         return (m.ref[body] if kind == "translation" else rot[body]), axis + 1
 
     w = ["*HEADING", f"KneeMesh {__version__} knee, CalculiX dialect: rigid bodies, {flex:g} deg flexion under "
-         f"{m.load.joint_load_n:g} N", f"*INCLUDE, INPUT={include}", "*NODE"]
+         f"{m.load.joint_load_n:g} N ({m.load.medial_offset_mm:g} mm medial)", f"*INCLUDE, INPUT={include}", "*NODE"]
     w += [f"{n}, " + ", ".join(f"{c:.6f}" for c in m.nodes[m.ref[b]]) for b, n in rot.items()]
     for b, n in rot.items():
         w.append(f"*RIGID BODY, NSET={b.upper()}_BODY, REF NODE={m.ref[b]}, ROT NODE={n}")
@@ -56,7 +56,7 @@ def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str) -
     w += ["** step 1: settle under the joint load and the quadriceps force from the seated pose",
           "*STEP, NLGEOM, INC=200", "*STATIC", "1.0, 1.0, 1e-6, 1.0", *CONTROLS, "*BOUNDARY",
           f"{FIXED_BODY.upper()}_BODY, 1, 3, 0.0", f"{m.ref[FIXED_BODY]}, 1, 3, 0.0", f"{driven}, {dof}, {dof}, 0.0",
-          "*CLOAD, AMPLITUDE=HOLD", *inp.joint_load(m), *outputs, "*END STEP"]
+          "*CLOAD, AMPLITUDE=HOLD", *inp.joint_load(m, dof_of), *outputs, "*END STEP"]
     # step 2: flex the femur about X, the joint load held; whole increments (rounded up, so that
     # ccx adds no sliver of an increment at the end)
     n = int(np.ceil(flex / min(step, flex) - 1e-9))

@@ -13,10 +13,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from kneemesh_core import __version__
-from kneemesh_core.fe import abaqus, calculix
+from kneemesh_core.fe import abaqus, calculix, inp
 from kneemesh_core.fe.inp import PER_LINE, set_lines
-from kneemesh_core.fe.model import PAIRS, Model
+from kneemesh_core.fe.model import PAIRS, Model, deck_to_lps
 from kneemesh_core.fe.physics import (CARTILAGE_DENSITY_T_MM3, CARTILAGE_MODULUS_MPA, CARTILAGE_POISSON,
                                       CONFINED_MODULUS_MPA, QUADRICEPS_SLACK_MM, TRANSITION_STRAIN, ligament_table, quadriceps_table,
                                       spring_stiffness)
@@ -101,12 +103,24 @@ def shared(m: Model) -> str:
     return "\n".join(w) + "\n"
 
 
+def joint_load_line(m: Model) -> dict:
+    """Where the joint load acts, in the input's LPS frame: its force (N), a point of its line of action
+    at the knee's centre height (mm; ``medial_offset_mm`` medial of the femur's seated reference node),
+    and the adduction moment it makes about that node (N m: about the anterior axis, deck Y)."""
+    direction = deck_to_lps({**m.frame, "origin_lps_mm": [0.0, 0.0, 0.0]}, -m.tibial_axis)
+    return {"force_n": m.load.joint_load_n, "direction_lps": np.round(direction, 6).tolist(),
+            "medial_offset_mm": m.load.medial_offset_mm,
+            "through_lps_mm": np.round(deck_to_lps(m.frame, m.nodes[m.ref["femur"]] + m.load.medial_offset_mm * m.medial), 3).tolist(),
+            "adduction_moment_nm": round(abs(float(inp.load_moment(m)[1])) / 1000.0, 3)}
+
+
 def meta(m: Model, flexion_deg: float) -> dict:
     """What reading the results needs: node and element ids, fibres, loads (``model.json``)."""
     femur_nodes = set(m.body_nodes["femur"])
     return {
         "frame": m.frame, "side": m.side, "joint_load_n": m.load.joint_load_n,
         "joint_load_direction": (-m.tibial_axis).round(6).tolist(), "quadriceps_n": m.load.quadriceps_n,
+        "joint_load": joint_load_line(m),
         "flexion_deg": flexion_deg, "cartilage": m.load.cartilage, "contact_k": m.contact_k, "seating": m.seating,
         "pairs": {name: f"{slave.upper()}_ARTICULAR" for name, (slave, _) in m.pairs.items()},
         "slave_elements": {name: [int(m.parts[slave].elements[0]), int(m.parts[slave].elements[-1])]

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from typing import Callable
 
+import numpy as np
+
 from kneemesh_core.fe.model import Model
 from kneemesh_core.fe.physics import RESTRAINTS
 
@@ -33,11 +35,23 @@ def set_lines(kind: str, name: str, ids) -> list[str]:
     return [f"*{kind}, {kind}={name}", *id_lines(ids)]
 
 
-def joint_load(m: Model) -> list[str]:
+def joint_load(m: Model, dof_of: DofOf) -> list[str]:
     """``*CLOAD`` data lines: the joint load on the femur's reference node, ``joint_load_n`` down the
-    tibial axis."""
+    tibial axis, and its moment about that node where its line of action passes ``medial_offset_mm``
+    medial of it (:func:`load_moment`)."""
     force = -m.load.joint_load_n * m.tibial_axis
-    return [f"{m.ref['femur']}, {dof}, {f:.3f}" for dof, f in enumerate(force, 1) if abs(f) > 1e-3]
+    lines = [f"{m.ref['femur']}, {dof}, {f:.3f}" for dof, f in enumerate(force, 1) if abs(f) > 1e-3]
+    for axis, moment in enumerate(load_moment(m)):
+        if abs(moment) > 1e-3:
+            node, dof = dof_of("femur", "rotation", axis)
+            lines.append(f"{node}, {dof}, {moment:.3f}")
+    return lines
+
+
+def load_moment(m: Model) -> np.ndarray:
+    """The joint load's moment about the femur's reference node (3,), N mm, deck frame: its line of
+    action ``medial_offset_mm`` medial of the node (:attr:`Model.medial`)."""
+    return np.cross(m.load.medial_offset_mm * m.medial, -m.load.joint_load_n * m.tibial_axis)
 
 
 def contact_pairs(m: Model, contact_keyword: str) -> list[str]:

@@ -87,6 +87,11 @@ class Model:
     next_id: int = 1
     next_element: int = 1
 
+    @property
+    def medial(self) -> np.ndarray:
+        """The medial direction (3,), deck frame: deck X is the patient's right, so -X in a right knee."""
+        return np.array([-1.0 if self.side == "right" else 1.0, 0.0, 0.0])
+
     def add_nodes(self, points: np.ndarray) -> np.ndarray:
         ids = np.arange(self.next_id, self.next_id + len(points))
         for i, p in zip(ids, points):
@@ -105,6 +110,13 @@ def deck_frame(attachments: dict) -> tuple[np.ndarray, np.ndarray]:
     z = z - (z @ x) * x
     z /= np.linalg.norm(z)
     return np.asarray(femur["origin_mm"], float), np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def deck_to_lps(frame: dict, points) -> np.ndarray:
+    """Points (..., 3) of the deck frame in the input's LPS frame, mm; ``frame`` is :attr:`Model.frame`."""
+    axes = frame["axes_lps"]
+    rot = np.column_stack([axes["X_right"], axes["Y_anterior"], axes["Z_superior"]])
+    return np.asarray(frame["origin_lps_mm"], float) + np.asarray(points, float) @ rot.T
 
 
 #: What a tibiofemoral model leaves out where the knee has no patella (or no patellar cartilage) labelled.
@@ -133,6 +145,8 @@ def build(bones: dict[str, pv.PolyData], cartilages: dict[str, pv.UnstructuredGr
                      "axes_lps": {"X_right": rot[:, 0].round(6).tolist(), "Y_anterior": rot[:, 1].round(6).tolist(),
                                   "Z_superior": rot[:, 2].round(6).tolist()}})
     frames = attachments["frames"]
+    # the image pose's anatomical flexion (Grood-Suntay, deg): a run's flexion about X adds to it
+    m.frame["image_flexion_deg"] = attachments.get("angles_deg", {}).get("flexion")
     m.frame["tibia"] = {"origin_lps_mm": np.round(frames["tibia"]["origin_mm"], 4).tolist(),
                         "axes_lps": {a: np.round(frames["tibia"]["axes"][a], 6).tolist() for a in ("lateral", "anterior", "proximal")}}
     present = [b for b in BONES if b in bones]

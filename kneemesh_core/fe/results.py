@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kneemesh_core.fe.model import deck_to_lps
 from kneemesh_core.fe.physics import (MAX_BALANCE_ERROR, MAX_PLATE_PEAK_MPA, MAX_PRELOAD_STRAIN, MIN_PLATE_SHARE,
                                       MIN_PLATES_AREA_MM2, ligament_force)
 from kneemesh_core.io.files import atomic_write_json
@@ -111,9 +112,7 @@ def located(contact: dict, frame: dict, pair: str) -> dict:
     anterior and proximal of the tibial frame's origin, mm; ``frame["tibia"]``, from the anatomy);
     None without contact."""
     cop = centre_of_pressure(*(contact.get(k, [np.nan] * 3) for k in ("force", "moment", "centre", "normal")))
-    axes = frame["axes_lps"]
-    lps = None if cop is None else np.asarray(frame["origin_lps_mm"]) + np.column_stack(
-        [axes["X_right"], axes["Y_anterior"], axes["Z_superior"]]) @ cop
+    lps = None if cop is None else deck_to_lps(frame, cop)
     out = {"cop_lps_mm": None if lps is None else np.round(lps, 3).tolist()}
     if pair in TIBIOFEMORAL and "tibia" in frame:
         tibia = frame["tibia"]
@@ -143,7 +142,10 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
     ends = dat["nodes"].get(("displacements", "LIGAMENT_ENDS"), {})
     out = []
     for t in sorted(dat["contact"]):
-        row: dict = {"time": t, "flexion_deg": round(float(np.degrees(rots[t][meta["rot"]["femur"]][0])), 3) if t in rots else None}
+        flexion = round(float(np.degrees(rots[t][meta["rot"]["femur"]][0])), 3) if t in rots else None
+        image = meta["frame"].get("image_flexion_deg")
+        row: dict = {"time": t, "flexion_deg": flexion,
+                     "anatomical_flexion_deg": None if flexion is None or image is None else round(image + flexion, 3)}
         femur_force = meta["joint_load_n"] * np.asarray(meta["joint_load_direction"])  # whole from step 1 on
         pressures = dat["stress"].get(t, [])
         for name, slave in pairs.items():
@@ -260,6 +262,7 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
     result = {"solver": run.version, "completed": completed, "reason": reason, "seconds": round(run.seconds, 2),
               "physiological": not off_physiology, "physiology_reasons": off_physiology,
               "applied_load_n": meta["joint_load_n"], "quadriceps_n": meta["quadriceps_n"],
+              "joint_load": meta.get("joint_load"),
               "target_flexion_deg": meta["flexion_deg"], "reached_flexion_deg": round(reached, 3),
               "contact_stiffness_n_mm3": meta["contact_k"], "seating": meta["seating"], "increments": increments}
     atomic_write_json(folder / RESULTS_FILE, result, indent=1)

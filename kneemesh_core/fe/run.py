@@ -62,13 +62,13 @@ def write_decks(out_dir: Path, load: LoadCase = LoadCase()) -> dict:
             "files": [f"{FE_DIR}/{f.name}" for f in files], "nodes": len(m.nodes),
             "c3d8": int(sum(len(p.elements) for p in m.parts.values())), "springs": len(m.springs),
             "contact_stiffness_n_mm3": m.contact_k, "seating": m.seating, "cartilage": load.cartilage,
-            "flexion_deg": load.flexion_deg, "joint_load_n": load.joint_load_n}
+            "flexion_deg": load.flexion_deg, "joint_load_n": load.joint_load_n, "medial_offset_mm": load.medial_offset_mm}
 
 
 def run_folder(smoke: bool = False, flexion_deg: float | None = None, load: LoadCase | None = None) -> str:
     """Where a run's deck and results lie, relative to the job folder: ``fe`` (the job's own decks), ``fe/smoke``
-    or ``fe/flexion_<deg>``, the name followed by ``_<joint load>N_<quadriceps>N_<cartilage>`` for a load case
-    other than the decks' (``load``)."""
+    or ``fe/flexion_<deg>``, the name followed by ``_<joint load>N_<quadriceps>N_<medial offset>mm_<cartilage>``
+    for a load case other than the decks' (``load``)."""
     if smoke:
         name = SMOKE_DIR
     elif flexion_deg is not None or load is not None:
@@ -76,7 +76,7 @@ def run_folder(smoke: bool = False, flexion_deg: float | None = None, load: Load
     else:
         return FE_DIR
     if load is not None:
-        name += f"_{load.joint_load_n:g}N_{load.quadriceps_n:g}N_{load.cartilage}"
+        name += f"_{load.joint_load_n:g}N_{load.quadriceps_n:g}N_{load.medial_offset_mm:g}mm_{load.cartilage}"
     return f"{FE_DIR}/{name}"
 
 
@@ -87,14 +87,18 @@ def deck_load(fe: Path) -> LoadCase | None:
         return None
     meta = json.loads(meta_file.read_text())
     return LoadCase(joint_load_n=meta["joint_load_n"], quadriceps_n=meta["quadriceps_n"], flexion_deg=meta["flexion_deg"],
-                    cartilage=meta["cartilage"])
+                    cartilage=meta["cartilage"],
+                    medial_offset_mm=(meta.get("joint_load") or {}).get("medial_offset_mm", 0.0))  # (0: decks before it)
+
+
+#: What a run's model holds of its load case: another value of any needs a model of its own.
+MODEL_LOAD = ("joint_load_n", "quadriceps_n", "medial_offset_mm", "cartilage")
 
 
 def another_model(decks: LoadCase | None, load: LoadCase | None) -> bool:
-    """Whether a run under ``load`` needs a model of its own beside the job's decks (another joint load,
-    quadriceps force or cartilage: they are in the shared model; the flexion is only the wrapper's)."""
-    return decks is not None and load is not None and (load.joint_load_n, load.quadriceps_n, load.cartilage) != (
-        decks.joint_load_n, decks.quadriceps_n, decks.cartilage)
+    """Whether a run under ``load`` needs a model of its own beside the job's decks (another value of
+    :data:`MODEL_LOAD`: they are in the shared model and its seating; the flexion is only the wrapper's)."""
+    return decks is not None and load is not None and any(getattr(load, k) != getattr(decks, k) for k in MODEL_LOAD)
 
 
 def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = False, timeout_s: float = 1800.0,

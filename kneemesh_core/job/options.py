@@ -95,6 +95,10 @@ class JobRequest(BaseModel):
                                            "before meshing, with the reasons.")
     joint_load: float = Field(1000.0, ge=0.0, le=6000.0, allow_inf_nan=False,
                               description="The joint load the femur carries, N (down the tibial axis).")
+    medial_offset: float = Field(LoadCase.medial_offset_mm, ge=-40.0, le=40.0, allow_inf_nan=False,
+                                 description="How far medial of the knee's centre the joint load's line of action "
+                                             "passes in the frontal plane, mm (negative: lateral); the knee "
+                                             "adduction moment is the joint load times it.")
     quadriceps: float = Field(300.0, ge=0.0, le=3000.0, allow_inf_nan=False,
                               description="The quadriceps force on the patella at its initial length, N.")
     flexion: float = Field(90.0, ge=1.0, le=120.0, allow_inf_nan=False,
@@ -117,7 +121,8 @@ class JobRequest(BaseModel):
         return JobOptions(
             input_type=self.input_type, model=self.model, preset=self.preset, labels=self.labels, side=self.side,
             only=self.only, stl=self.stl, bundle=bundle, simulate=self.simulate, force=self.force,
-            load=LoadCase(joint_load_n=self.joint_load, quadriceps_n=self.quadriceps, flexion_deg=self.flexion,
+            load=LoadCase(joint_load_n=self.joint_load, medial_offset_mm=self.medial_offset, quadriceps_n=self.quadriceps,
+                          flexion_deg=self.flexion,
                           cartilage=self.fe_cartilage),
             surface=SurfaceOptions(bone_edge_mm=self.bone_edge),
             hex=HexOptions(element_size=self.element_size, layers=self.layers),
