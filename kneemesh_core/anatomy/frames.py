@@ -18,7 +18,7 @@ The long axes come from the anatomy template registered to the bone (``long_axis
 :mod:`.attachments`): an image's field of view shows 35-80 mm of each shaft, still in the
 metaphysis, whose flare tilts the line through its cross-section centres by tens of degrees (on 39
 OAI maps the flexion read that way ran from -23 to +26 deg and moved 2-20 deg between two visits of
-one knee; through the template, -21 to +0.5 deg and 0-4.3 deg between visits).
+one knee; through the template, -20 to +1 deg and 0-4.9 deg between visits).
 The shaft's cross-section centres remain where no template axis is given.
 """
 
