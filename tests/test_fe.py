@@ -9,6 +9,7 @@ import re
 
 import numpy as np
 import pytest
+import pyvista as pv
 
 from conftest import SAMPLE, real
 from kneemesh_core import KneeMeshError
@@ -315,6 +316,17 @@ def test_smoke_simulation_of_a_real_knee_balances_with_physiological_contact(kne
         assert rings < 0.4 * (rings + inc["medial"]["force_n"] + inc["lateral"]["force_n"]), inc
     assert r["physiological"] and report["simulation"]["status"] == "ok", r["physiology_reasons"]
     assert report["fe"]["seating"]["femur_shift_mm"] == pytest.approx(r["seating"]["femur_shift_mm"])
+    # the contact pressure maps in the bundle: each plate's and the patella's, one array per loaded increment,
+    # on the job's mesh in LPS, whose largest value is the increment's peak in results.json
+    assert r["pressure_maps"] == [f"pressure_{t}.vtu" for t in ("lateral_tibial_cartilage", "medial_tibial_cartilage",
+                                                              "patellar_cartilage")]
+    assert {f"fe/smoke/{name}" for name in r["pressure_maps"]} <= set(sim["files"])
+    plate = pv.read(out / "fe" / "smoke" / "pressure_medial_tibial_cartilage.vtu")
+    mesh = pv.read(out / "meshes" / "medial_tibial_cartilage.vtu")
+    assert len(plate.field_data["flexion_deg"]) == len(on) and plate.field_data["flexion_deg"][-1] == pytest.approx(15.0, abs=1e-3)
+    assert np.isin(np.round(plate.points, 4), np.round(mesh.points, 4)).all(axis=1).all()  # the mesh's own points, LPS
+    for k, inc in enumerate(on):
+        assert plate.cell_data[f"pressure_mpa_{k}"].max() == pytest.approx(inc["medial"]["peak_pressure_mpa"], abs=1e-3)
     image = json.loads((out / "attachments.json").read_text())["angles_deg"]["flexion"]
     for inc in on:  # flexion from the image pose, and anatomically: the image pose's plus the run's
         assert inc["anatomical_flexion_deg"] == pytest.approx(image + inc["flexion_deg"], abs=2e-3), inc

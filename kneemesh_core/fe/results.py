@@ -18,6 +18,7 @@ import numpy as np
 from kneemesh_core.fe.model import deck_to_lps
 from kneemesh_core.fe.physics import (MAX_BALANCE_ERROR, MAX_PLATE_PEAK_MPA, MAX_PRELOAD_STRAIN, MIN_PLATE_SHARE,
                                       MIN_PLATES_AREA_MM2, ligament_force)
+from kneemesh_core.fe.pressure_map import write_maps
 from kneemesh_core.io.files import atomic_write_json
 
 RESULTS_FILE, CONTACT_FIGURE = "results.json", "contact.png"
@@ -240,12 +241,14 @@ def physiology(increments: list[dict], load_n: float) -> list[str]:
     return out
 
 
-def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
-    """``results.json`` (and ``contact.png``) in ``folder`` from a run and its .dat file.  ``completed``
+def write_results(folder: Path, run, meta: dict, dat_path: Path, meshes: Path | None = None) -> dict:
+    """``results.json`` (and ``contact.png``, and the pressure maps of :mod:`.pressure_map` on the job's
+    cartilage meshes in ``meshes``) in ``folder`` from a run and its .dat file.  ``completed``
     needs ccx to finish and every loaded increment to be physics (:func:`first_invalid`);
     ``reached_flexion_deg`` is the last trusted increment's flexion; ``physiological`` whether the
     trusted increments meet the targets of :func:`physiology` (``physiology_reasons`` when not)."""
-    increments = summarise(parse_dat(dat_path, stopped=not run.completed), meta) if dat_path.exists() else []
+    dat = parse_dat(dat_path, stopped=not run.completed) if dat_path.exists() else None
+    increments = summarise(dat, meta) if dat else []
     invalid = first_invalid(increments)
     cut = next((i for i, r in enumerate(increments) if r["time"] >= LOADED_AT and not physical(r)), len(increments))
     trusted = increments[:cut]
@@ -264,7 +267,9 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
               "applied_load_n": meta["joint_load_n"], "quadriceps_n": meta["quadriceps_n"],
               "joint_load": meta.get("joint_load"),
               "target_flexion_deg": meta["flexion_deg"], "reached_flexion_deg": round(reached, 3),
-              "contact_stiffness_n_mm3": meta["contact_k"], "seating": meta["seating"], "increments": increments}
+              "contact_stiffness_n_mm3": meta["contact_k"], "seating": meta["seating"],
+              "pressure_maps": write_maps(folder, meshes, meta, dat["stress"], loaded(trusted)) if meshes and dat else [],
+              "increments": increments}
     atomic_write_json(folder / RESULTS_FILE, result, indent=1)
     if increments:
         plot(result, folder / CONTACT_FIGURE)

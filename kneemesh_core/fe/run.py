@@ -20,6 +20,9 @@ from kneemesh_core.fe.results import CONTACT_FIGURE, CONTACTS, RESULTS_FILE, wri
 from kneemesh_core.fe.simulate import run_ccx
 from kneemesh_core.tissues import BONES, CARTILAGES
 
+#: The job folder's meshes (the job's layout, kneemesh_core.job.outputs, which imports this package).
+MESHES_DIR = "meshes"
+
 FE_DIR, SMOKE_DIR = "fe", "smoke"
 #: Where a job's results lie, relative to the job folder: the full flexion first, then the smoke run.
 RESULT_FILES = (f"{FE_DIR}/{RESULTS_FILE}", f"{FE_DIR}/{SMOKE_DIR}/{RESULTS_FILE}")
@@ -33,7 +36,7 @@ def read_model(out_dir: Path, load: LoadCase = LoadCase()) -> Model:
     if not att_file.exists():
         raise KneeMeshError("anatomy_missing", "the decks need the attachment sites and frames (attachments.json): "
                             "run the whole job (bones, cartilage and anatomy) first.")
-    files = {t: out / "meshes" / f"{t}.{'vtp' if t in BONES else 'vtu'}" for t in (*BONES, *CARTILAGES)}
+    files = {t: out / MESHES_DIR / f"{t}.{'vtp' if t in BONES else 'vtu'}" for t in (*BONES, *CARTILAGES)}
     missing = [f.name for t, f in files.items() if not f.exists() and t not in PATELLOFEMORAL]
     if missing:
         raise KneeMeshError("mesh_missing", f"the decks need every bone and cartilage mesh (a tibiofemoral model at "
@@ -125,7 +128,7 @@ def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = Fals
     if not meta_file.exists():
         raise KneeMeshError("deck_missing", f"{meta_file} is missing: write the decks again (kneemesh mesh).")
     run = run_ccx(folder, Path(deck.CCX_FILE).stem, timeout_s)
-    return write_results(folder, run, json.loads(meta_file.read_text()), folder / "knee_ccx.dat")
+    return write_results(folder, run, json.loads(meta_file.read_text()), folder / "knee_ccx.dat", Path(out_dir) / MESHES_DIR)
 
 
 def simulation_entry(results: dict, kind: str, folder: str) -> dict:
@@ -143,4 +146,4 @@ def simulation_entry(results: dict, kind: str, folder: str) -> dict:
             "solver_seconds": r["seconds"], "reached_flexion_deg": r["reached_flexion_deg"],
             "target_flexion_deg": r["target_flexion_deg"],
             "final": {k: v for k, v in last.items() if k in ("balance_error", *CONTACTS)},
-            "files": [f"{folder}/{f}" for f in (RESULTS_FILE, CONTACT_FIGURE)]}
+            "files": [f"{folder}/{f}" for f in (RESULTS_FILE, CONTACT_FIGURE, *results.get("pressure_maps", []))]}
