@@ -47,7 +47,7 @@ browser:
 demo: $(RUNTIME) ccx
 	$(VENV)/bin/kneemesh inspect kneemesh/data/right_knee_example.nrrd
 	$(VENV)/bin/kneemesh mesh kneemesh/data/right_knee_example.nrrd --out $(DEMO_OUT) --simulate smoke
-	@echo "Outputs are in $(abspath $(DEMO_OUT)): meshes/, attachments.json/.png, fe/ (decks; smoke/ results.json, contact.png), report.json."
+	@echo "Outputs are in $(abspath $(DEMO_OUT)): meshes/, attachments.json/.png, fe/ (decks; smoke/ results.json, contact.png, pressure_*.vtu), report.json."
 
 test: $(STAMP) ccx browser
 	$(PY) -m pytest -n 2 --dist loadgroup -q --durations=12
