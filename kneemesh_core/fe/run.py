@@ -145,5 +145,5 @@ def simulation_entry(results: dict, kind: str, folder: str) -> dict:
             "physiological": r["physiological"], "reason": r["reason"], "solver": r["solver"],
             "solver_seconds": r["seconds"], "reached_flexion_deg": r["reached_flexion_deg"],
             "target_flexion_deg": r["target_flexion_deg"],
-            "final": {k: v for k, v in last.items() if k in ("balance_error", *CONTACTS)},
+            "final": {k: v for k, v in last.items() if k in ("anatomical_flexion_deg", "balance_error", *CONTACTS)},
             "files": [f"{folder}/{f}" for f in (RESULTS_FILE, CONTACT_FIGURE, *results.get("pressure_maps", []))]}
