@@ -18,7 +18,7 @@ import numpy as np
 from kneemesh_core import __version__
 from kneemesh_core.fe import abaqus, calculix, inp
 from kneemesh_core.fe.inp import PER_LINE, set_lines
-from kneemesh_core.fe.model import PAIRS, Model, deck_to_lps
+from kneemesh_core.fe.model import PAIRS, Model, deck_rotation, deck_to_lps
 from kneemesh_core.fe.physics import (CARTILAGE_DENSITY_T_MM3, CARTILAGE_MODULUS_MPA, CARTILAGE_POISSON,
                                       CONFINED_MODULUS_MPA, QUADRICEPS_SLACK_MM, TRANSITION_STRAIN, ligament_table, quadriceps_table,
                                       spring_stiffness)
@@ -107,7 +107,7 @@ def joint_load_line(m: Model) -> dict:
     """Where the joint load acts, in the input's LPS frame: its force (N), a point of its line of action
     at the knee's centre height (mm; ``medial_offset_mm`` medial of the femur's seated reference node),
     and the adduction moment it makes about that node (N m: about the anterior axis, deck Y)."""
-    direction = deck_to_lps({**m.frame, "origin_lps_mm": [0.0, 0.0, 0.0]}, -m.tibial_axis)
+    direction = deck_rotation(m.frame) @ -m.tibial_axis
     return {"force_n": m.load.joint_load_n, "direction_lps": np.round(direction, 6).tolist(),
             "medial_offset_mm": m.load.medial_offset_mm,
             "through_lps_mm": np.round(deck_to_lps(m.frame, m.nodes[m.ref["femur"]] + m.load.medial_offset_mm * m.medial), 3).tolist(),

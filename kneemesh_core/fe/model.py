@@ -112,11 +112,15 @@ def deck_frame(attachments: dict) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(femur["origin_mm"], float), np.stack([x, np.cross(z, x), z], axis=1)
 
 
+def deck_rotation(frame: dict) -> np.ndarray:
+    """(3, 3) whose columns are the deck's X, Y, Z in LPS; ``frame`` is :attr:`Model.frame`."""
+    axes = frame["axes_lps"]
+    return np.column_stack([axes["X_right"], axes["Y_anterior"], axes["Z_superior"]])
+
+
 def deck_to_lps(frame: dict, points) -> np.ndarray:
     """Points (..., 3) of the deck frame in the input's LPS frame, mm; ``frame`` is :attr:`Model.frame`."""
-    axes = frame["axes_lps"]
-    rot = np.column_stack([axes["X_right"], axes["Y_anterior"], axes["Z_superior"]])
-    return np.asarray(frame["origin_lps_mm"], float) + np.asarray(points, float) @ rot.T
+    return np.asarray(frame["origin_lps_mm"], float) + np.asarray(points, float) @ deck_rotation(frame).T
 
 
 #: What a tibiofemoral model leaves out where the knee has no patella (or no patellar cartilage) labelled.
@@ -190,15 +194,22 @@ def _add_bones(m: Model, points: dict[str, np.ndarray], triangles: dict[str, np.
         m.body_nodes[bone] = []
 
 
+def deck_cells(grid: pv.UnstructuredGrid, cartilage: str) -> np.ndarray:
+    """The cells of a cartilage's hex mesh (indices into ``grid``, in order) that the deck holds: the
+    articular layer of ``rigid`` cartilage (deeper layers move with the bone and change nothing), every
+    layer of ``deformable``; the deck numbers its elements in this order."""
+    layer = np.asarray(grid.cell_data["layer"])
+    return np.flatnonzero(layer == layer.max()) if cartilage == "rigid" else np.arange(grid.n_cells)
+
+
 def _add_cartilage(m: Model, tissue: str, grid: pv.UnstructuredGrid, to_deck) -> None:
-    """One cartilage's hexahedra, with its bone's body: rigid cartilage keeps only the articular layer
-    (deeper layers move with the bone and change nothing; its bone side is then that layer's deep
-    face), deformable cartilage every layer.  Its thickness for the contact law is the median length
+    """One cartilage's hexahedra (:func:`deck_cells`), with its bone's body: for rigid cartilage, the
+    articular layer's deep face is its bone side.  Its thickness for the contact law is the median length
     of its columns (their nodes are stacked layer by layer)."""
     layer = np.asarray(grid.cell_data["layer"])
     top = int(layer.max())
     rigid = m.load.cartilage == "rigid"
-    keep = layer == top if rigid else np.ones(len(layer), bool)
+    keep = deck_cells(grid, m.load.cartilage)
     conn = np.asarray(grid.cells_dict[pv.CellType.HEXAHEDRON])[keep]
     used = np.unique(conn)
     ids = m.add_nodes(to_deck(grid.points[used]))

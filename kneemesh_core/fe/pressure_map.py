@@ -17,14 +17,8 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
+from kneemesh_core.fe.model import deck_cells
 from kneemesh_core.io.files import atomic_path
-
-
-def slave_cells(grid: pv.UnstructuredGrid, cartilage: str) -> np.ndarray:
-    """The cells (indices into ``grid``) that the deck's elements of a slave cartilage are, in the deck's
-    element order: the articular layer of a ``rigid`` cartilage (:func:`.model._add_cartilage`), else all."""
-    layer = np.asarray(grid.cell_data["layer"])
-    return np.flatnonzero(layer == layer.max()) if cartilage == "rigid" else np.arange(grid.n_cells)
 
 
 def element_pressure(stress: list[tuple[int, float]], lo: int, n: int) -> np.ndarray:
@@ -50,7 +44,7 @@ def write_maps(folder: Path, meshes: Path, meta: dict, stress: dict, increments:
         if not path.exists() or not increments:
             continue
         grid = pv.read(path)
-        cells = slave_cells(grid, meta["cartilage"])
+        cells = deck_cells(grid, meta["cartilage"])
         if len(cells) != hi - lo + 1:  # not the mesh the deck was written from
             continue
         out = grid.extract_cells(cells)

@@ -18,7 +18,7 @@ import numpy as np
 from kneemesh_core.fe.model import deck_to_lps
 from kneemesh_core.fe.physics import (MAX_BALANCE_ERROR, MAX_PLATE_PEAK_MPA, MAX_PRELOAD_STRAIN, MIN_PLATE_SHARE,
                                       MIN_PLATES_AREA_MM2, ligament_force)
-from kneemesh_core.fe.pressure_map import write_maps
+from kneemesh_core.fe.pressure_map import element_pressure, write_maps
 from kneemesh_core.io.files import atomic_write_json
 
 RESULTS_FILE, CONTACT_FIGURE = "results.json", "contact.png"
@@ -142,9 +142,9 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
     rots = dat["nodes"].get(("displacements", "ROTS"), {})
     ends = dat["nodes"].get(("displacements", "LIGAMENT_ENDS"), {})
     out = []
+    image = meta["frame"].get("image_flexion_deg")
     for t in sorted(dat["contact"]):
         flexion = round(float(np.degrees(rots[t][meta["rot"]["femur"]][0])), 3) if t in rots else None
-        image = meta["frame"].get("image_flexion_deg")
         row: dict = {"time": t, "flexion_deg": flexion,
                      "anatomical_flexion_deg": None if flexion is None or image is None else round(image + flexion, 3)}
         femur_force = meta["joint_load_n"] * np.asarray(meta["joint_load_direction"])  # whole from step 1 on
@@ -154,7 +154,7 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
             force = -c["normal_force"] if np.isfinite(c["normal_force"]) else 0.0
             area = c["area"] if np.isfinite(c["area"]) else 0.0
             lo, hi = elements[name]
-            peak = max((p for e, p in pressures if lo <= e <= hi), default=0.0)
+            peak = float(element_pressure(pressures, lo, hi - lo + 1).max())
             row[name] = {"force_n": round(force, 3), "area_mm2": round(area, 3),
                          "mean_pressure_mpa": round(force / area, 4) if area > 0 else 0.0,
                          "peak_pressure_mpa": round(max(peak, 0.0), 4), **located(c, meta["frame"], name)}
