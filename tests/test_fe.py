@@ -518,3 +518,27 @@ def test_a_load_option_changes_the_load_the_deck_applies(knee):
 
     assert medial_share(first) > medial_share(base) + 0.08, (medial_share(first), medial_share(base))
 
+
+
+def test_the_joint_load_passes_medial_of_a_right_knee_and_of_its_mirror_image(tmp_path):
+    """The medial offset on both sides: the sample and its mirror image through the sagittal plane (a left
+    knee) place the joint load's line of action the default offset medial of the femur's flexion-axis
+    middle (against the femoral frame's lateral axis), with the same adduction moment, at mirrored points."""
+    import SimpleITK as sitk
+
+    from conftest import mirror_lr
+    from kneemesh_core.job import JobRequest, run
+
+    mirrored = tmp_path / "mirrored.nrrd"
+    sitk.WriteImage(mirror_lr(sitk.ReadImage(str(real(SAMPLE)))), str(mirrored))
+    offset, lines = LoadCase().medial_offset_mm, {}
+    for side, path in (("right", real(SAMPLE)), ("left", mirrored)):
+        run(str(path), tmp_path / side, JobRequest.build(side=side).job_options(), workers=2)
+        line = json.loads((tmp_path / side / "fe" / "model.json").read_text())["joint_load"]
+        femur = json.loads((tmp_path / side / "attachments.json").read_text())["frames"]["femur"]
+        lateral = np.subtract(line["through_lps_mm"], femur["origin_mm"]) @ np.asarray(femur["axes"]["lateral"])
+        assert lateral == pytest.approx(-offset, abs=1.5), (side, line, femur)
+        # about the anterior axis: the whole moment less the tibial axis's few degrees off the deck's Z
+        assert line["adduction_moment_nm"] == pytest.approx(offset * line["force_n"] / 1000.0, rel=0.01)
+        lines[side] = np.asarray(line["through_lps_mm"])
+    assert lines["left"] * [-1, 1, 1] == pytest.approx(lines["right"], abs=1.0)  # LPS x -> -x
