@@ -317,14 +317,16 @@ def test_smoke_simulation_of_a_real_knee_balances_with_physiological_contact(kne
     assert r["physiological"] and report["simulation"]["status"] == "ok", r["physiology_reasons"]
     assert report["fe"]["seating"]["femur_shift_mm"] == pytest.approx(r["seating"]["femur_shift_mm"])
     # the contact pressure maps in the bundle: each plate's and the patella's, one array per loaded increment,
-    # on the job's mesh in LPS, whose largest value is the increment's peak in results.json
+    # on the contact skin in LPS, on the job's mesh's articular surface, whose largest value is the
+    # increment's peak in results.json
     assert r["pressure_maps"] == [f"pressure_{t}.vtu" for t in ("lateral_tibial_cartilage", "medial_tibial_cartilage",
                                                               "patellar_cartilage")]
     assert {f"fe/smoke/{name}" for name in r["pressure_maps"]} <= set(sim["files"])
     plate = pv.read(out / "fe" / "smoke" / "pressure_medial_tibial_cartilage.vtu")
     mesh = pv.read(out / "meshes" / "medial_tibial_cartilage.vtu")
     assert len(plate.field_data["flexion_deg"]) == len(on) and plate.field_data["flexion_deg"][-1] == pytest.approx(15.0, abs=1e-3)
-    assert np.isin(np.round(plate.points, 4), np.round(mesh.points, 4)).all(axis=1).all()  # the mesh's own points, LPS
+    _, on_mesh = mesh.extract_surface().triangulate().find_closest_cell(np.asarray(plate.points), return_closest_point=True)
+    assert np.linalg.norm(on_mesh - plate.points, axis=1).max() < 0.15  # on the mesh's surface (the tibia is held), LPS
     for k, inc in enumerate(on):
         assert plate.cell_data[f"pressure_mpa_{k}"].max() == pytest.approx(inc["medial"]["peak_pressure_mpa"], abs=1e-3)
     image = json.loads((out / "attachments.json").read_text())["angles_deg"]["flexion"]

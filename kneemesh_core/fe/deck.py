@@ -3,7 +3,8 @@
 reading the results needs (``../shared/docs/fe-calculix-reference.md``, section 5: what must differ
 between Abaqus/Explicit and CalculiX, and why).
 
-``knee_model.inp`` (both dialects): nodes, C3D8 cartilage, named node and element sets, element-face
+``knee_model.inp`` (both dialects): nodes, the cartilage (a rigid cartilage's contact skin of C3D6 wedges,
+:mod:`.contact_skin`; deformable cartilage's C3D8 hexahedra), named node and element sets, element-face
 surfaces (articular S2, bone side S1), the ligament springs (SPRINGA, Blankevoort), the contact
 interactions (linear pressure-overclosure, K stated), amplitudes.
 """
@@ -19,11 +20,12 @@ from kneemesh_core import __version__
 from kneemesh_core.fe import abaqus, calculix, inp
 from kneemesh_core.fe.inp import PER_LINE, set_lines
 from kneemesh_core.fe.model import PAIRS, Model, deck_rotation, deck_to_lps
+from kneemesh_core.fe.pressure_map import slave_surface
 from kneemesh_core.fe.physics import (CARTILAGE_DENSITY_T_MM3, CARTILAGE_MODULUS_MPA, CARTILAGE_POISSON,
                                       CONFINED_MODULUS_MPA, QUADRICEPS_SLACK_MM, TRANSITION_STRAIN, ligament_table, quadriceps_table,
                                       spring_stiffness)
 from kneemesh_core.io.files import atomic_write_text
-from kneemesh_core.tissues import BONES
+from kneemesh_core.tissues import BONES, CARTILAGES
 
 MODEL_FILE, CCX_FILE, ABAQUS_FILE, META_FILE = "knee_model.inp", "knee_ccx.inp", "knee_abaqus.inp", "model.json"
 
@@ -43,7 +45,7 @@ def shared(m: Model) -> str:
     ]
     w += [f"{i}, {p[0]:.6f}, {p[1]:.6f}, {p[2]:.6f}" for i, p in m.nodes.items()]
     for part in m.parts.values():
-        w.append(f"*ELEMENT, TYPE=C3D8, ELSET={part.name.upper()}")
+        w.append(f"*ELEMENT, TYPE={part.element_type}, ELSET={part.name.upper()}")
         w += [f"{e}, " + ", ".join(str(int(n)) for n in c) for e, c in zip(part.elements, part.connectivity)]
     w.append("*ELEMENT, TYPE=SPRINGA, ELSET=LIGAMENTS")
     w += [f"{s.element}, {s.nodes[0]}, {s.nodes[1]}" for s in m.springs]
@@ -125,6 +127,7 @@ def meta(m: Model, flexion_deg: float) -> dict:
         "pairs": {name: f"{slave.upper()}_ARTICULAR" for name, (slave, _) in m.pairs.items()},
         "slave_elements": {name: [int(m.parts[slave].elements[0]), int(m.parts[slave].elements[-1])]
                            for name, (slave, _) in m.pairs.items()},
+        "slave_surfaces": {slave: _slave_surface(m, slave) for slave, _ in m.pairs.values() if slave in CARTILAGES},
         "ref": {b: m.ref[b] for b in BONES if b in m.ref}, "rot": calculix.rot_nodes(m),
         "femur_springs_n_mm": spring_stiffness("femur", "translation").tolist(),
         "patella_springs_n_mm": spring_stiffness("patella", "translation", to="femur").tolist(),
@@ -137,6 +140,15 @@ def meta(m: Model, flexion_deg: float) -> dict:
                     "femur_end": 0 if s.nodes[0] in femur_nodes else 1 if s.nodes[1] in femur_nodes else None}
                    for s in m.springs],
     }
+
+
+def _slave_surface(m: Model, tissue: str) -> dict:
+    """The articular surface of a slave cartilage for its pressure maps (:func:`pressure_map.slave_surface`)."""
+    part = m.parts[tissue]
+    faces = part.articular_faces()
+    ids = np.unique(faces)
+    return slave_surface(deck_to_lps(m.frame, np.stack([m.nodes[int(i)] for i in ids])), np.searchsorted(ids, faces),
+                         part.articular)
 
 
 def write(m: Model, folder: Path, flexion_deg: float | None = None, max_increment_deg: float | None = None,

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyvista as pv
 
+from kneemesh_core.fe.contact_skin import articular_surface, skin
 from kneemesh_core.fe.physics import QUADRICEPS_ORIGIN_MM, QUADRICEPS_POLE_MM, LoadCase, contact_stiffness
 from kneemesh_core.geometry import RAY_BACKOFF_MM, quad_node_areas, ray_distances
 from kneemesh_core.hexmesh.quality import articular_quads
@@ -40,15 +41,25 @@ PAIRS = {"medial": ("medial_tibial_cartilage", "femoral_cartilage"),
 
 @dataclass
 class Part:
-    """One cartilage's hexahedra in the deck: element ids, their nodes (global ids, C3D8 order)."""
+    """One cartilage (or surrogate) in the deck: element ids and their nodes (global ids), hexahedra in C3D8
+    order or, for a rigid cartilage's contact skin (:mod:`.contact_skin`), wedges in C3D6 order."""
 
     name: str
     body: str
     elements: np.ndarray  # (E,) ids
-    connectivity: np.ndarray  # (E, 8) global node ids
+    connectivity: np.ndarray  # (E, 8) or (E, 6) global node ids
     articular: np.ndarray  # (A,) element ids whose S2 face is articular
     bone_side: np.ndarray  # (B,) element ids whose S1 face lies on the bone side
     thickness_mm: float
+
+    @property
+    def element_type(self) -> str:
+        return {8: "C3D8", 6: "C3D6"}[self.connectivity.shape[1]]
+
+    def articular_faces(self) -> np.ndarray:
+        """The articular (S2) faces of its articular elements, (A, 4) quads or (A, 3) triangles of global ids."""
+        conn = self.connectivity[np.searchsorted(self.elements, self.articular)]
+        return articular_quads(conn) if self.element_type == "C3D8" else conn[:, 3:]
 
 
 @dataclass
@@ -69,6 +80,9 @@ class Model:
     bone_nodes: dict[str, np.ndarray] = field(default_factory=dict)  # bone -> ids
     bone_triangles: dict[str, np.ndarray] = field(default_factory=dict)  # bone -> (T, 3) ids
     parts: dict[str, Part] = field(default_factory=dict)
+    # cartilage -> its hex mesh's own articular surface, deck frame: points (P, 3), triangles (T, 3) (the
+    # contact runs on a rigid cartilage's skin; the meniscus surrogates follow the mesh's outline)
+    articular: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     springs: list[Spring] = field(default_factory=list)
     ref: dict[str, int] = field(default_factory=dict)  # body -> reference node
     body_nodes: dict[str, list[int]] = field(default_factory=dict)  # body -> nodes that must move with it
@@ -194,35 +208,35 @@ def _add_bones(m: Model, points: dict[str, np.ndarray], triangles: dict[str, np.
         m.body_nodes[bone] = []
 
 
-def deck_cells(grid: pv.UnstructuredGrid, cartilage: str) -> np.ndarray:
-    """The cells of a cartilage's hex mesh (indices into ``grid``, in order) that the deck holds: the
-    articular layer of ``rigid`` cartilage (deeper layers move with the bone and change nothing), every
-    layer of ``deformable``; the deck numbers its elements in this order."""
-    layer = np.asarray(grid.cell_data["layer"])
-    return np.flatnonzero(layer == layer.max()) if cartilage == "rigid" else np.arange(grid.n_cells)
-
-
 def _add_cartilage(m: Model, tissue: str, grid: pv.UnstructuredGrid, to_deck) -> None:
-    """One cartilage's hexahedra (:func:`deck_cells`), with its bone's body: for rigid cartilage, the
-    articular layer's deep face is its bone side.  Its thickness for the contact law is the median length
-    of its columns (their nodes are stacked layer by layer)."""
+    """One cartilage in the deck, with its bone's body: a rigid cartilage as the contact skin of its
+    articular layer (:mod:`.contact_skin`), a deformable one as all its hexahedra (in the mesh's order), their
+    articular layer's S2 faces in contact and the deepest layer's S1 faces on the bone.  Its thickness for the
+    contact law is the median length of its columns (their nodes are stacked layer by layer)."""
     layer = np.asarray(grid.cell_data["layer"])
     top = int(layer.max())
-    rigid = m.load.cartilage == "rigid"
-    keep = deck_cells(grid, m.load.cartilage)
-    conn = np.asarray(grid.cells_dict[pv.CellType.HEXAHEDRON])[keep]
-    used = np.unique(conn)
-    ids = m.add_nodes(to_deck(grid.points[used]))
-    lookup = np.zeros(grid.n_points, int)
-    lookup[used] = ids
+    hexes = np.asarray(grid.cells_dict[pv.CellType.HEXAHEDRON])
+    pts = to_deck(grid.points)
+    points, triangles, outward = articular_surface(pts, hexes[layer == top])
+    m.articular[tissue] = (points, triangles)
+    if m.load.cartilage == "rigid":
+        nodes, conn = skin(points, triangles, outward)
+        ids = m.add_nodes(nodes)
+        conn, articular, bone_side = ids[conn], np.ones(len(conn), bool), np.ones(len(conn), bool)
+    else:
+        conn = hexes
+        used = np.unique(conn)
+        ids = m.add_nodes(pts[used])
+        lookup = np.zeros(grid.n_points, int)
+        lookup[used] = ids
+        conn, articular, bone_side = lookup[conn], layer == top, layer == 0
     elements = np.arange(m.next_element, m.next_element + len(conn))
     m.next_element += len(conn)
-    kept_layer = layer[keep]
-    pts = np.asarray(grid.points)
-    thick = np.linalg.norm(pts[np.asarray(grid.point_data["articular"], bool)]
-                           - pts[np.asarray(grid.point_data["bone_side"], bool)], axis=1)
-    m.parts[tissue] = Part(tissue, BONE_OF[tissue], elements, lookup[conn], elements[kept_layer == top],
-                           elements[kept_layer == (top if rigid else 0)], float(np.median(thick)))
+    raw = np.asarray(grid.points)
+    thick = np.linalg.norm(raw[np.asarray(grid.point_data["articular"], bool)]
+                           - raw[np.asarray(grid.point_data["bone_side"], bool)], axis=1)
+    m.parts[tissue] = Part(tissue, BONE_OF[tissue], elements, conn, elements[articular], elements[bone_side],
+                           float(np.median(thick)))
     m.body_nodes[BONE_OF[tissue]].extend(ids.tolist())
 
 
@@ -264,10 +278,12 @@ def _measure_springs(m: Model) -> None:
 
 
 def _surface(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
-    """A cartilage's articular surface as points (P, 3) and triangles (T, 3), deck frame."""
-    quads, ids = _articular_faces(m, tissue)
-    local = np.searchsorted(ids, quads)
-    return np.stack([m.nodes[int(i)] for i in ids]), np.concatenate([local[:, [0, 1, 2]], local[:, [0, 2, 3]]])
+    """The articular surface of a part of the deck (the contact runs on it) as points (P, 3) and triangles
+    (T, 3), deck frame."""
+    faces, ids = _articular_faces(m, tissue)
+    local = np.searchsorted(ids, faces)
+    triangles = local if local.shape[1] == 3 else np.concatenate([local[:, [0, 1, 2]], local[:, [0, 2, 3]]])
+    return np.stack([m.nodes[int(i)] for i in ids]), triangles
 
 
 def add_menisci(m: Model, flexion_deg: float) -> None:
@@ -283,7 +299,7 @@ def add_menisci(m: Model, flexion_deg: float) -> None:
     centre = m.nodes[m.ref["femur"]]
     femoral = [((points - centre) @ Rotation.from_rotvec([np.radians(a), 0.0, 0.0]).as_matrix().T + centre, triangles)
                for a in np.arange(0.0, flexion_deg + 1e-9, POSE_STEP_DEG)]
-    plates = {side: _surface(m, f"{side}_tibial_cartilage") for side in ("medial", "lateral")}
+    plates = {side: m.articular[f"{side}_tibial_cartilage"] for side in ("medial", "lateral")}
     for side, other in (("medial", "lateral"), ("lateral", "medial")):
         nodes, hexes = wedge(plates[side], femoral, m.tibial_axis, plates[other][0].mean(0))
         if not len(hexes):
@@ -324,10 +340,9 @@ def _add_surrogate(m: Model, name: str, body: str, nodes: np.ndarray, hexes: np.
 
 
 def _articular_faces(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
-    """The articular (S2) faces of a cartilage (or surrogate) as quads (Q, 4) of global node ids, and those ids."""
-    part = m.parts[tissue]
-    quads = articular_quads(part.connectivity[np.searchsorted(part.elements, part.articular)])
-    return quads, np.unique(quads)
+    """The articular (S2) faces of a part of the deck (:meth:`Part.articular_faces`) and their node ids."""
+    faces = m.parts[tissue].articular_faces()
+    return faces, np.unique(faces)
 
 
 def gaps(m: Model, slave: str, master: str, direction: np.ndarray) -> np.ndarray:
@@ -345,8 +360,13 @@ def _move(m: Model, body: str, shift: np.ndarray) -> None:
 def _node_areas(m: Model, tissue: str) -> np.ndarray:
     """Tributary area (mm^2) of each articular node of ``tissue``, in the order of
     :func:`_articular_faces`'s ids."""
-    quads, ids = _articular_faces(m, tissue)
-    return quad_node_areas(np.stack([m.nodes[int(i)] for i in ids]), np.searchsorted(ids, quads))
+    faces, ids = _articular_faces(m, tissue)
+    points, local = np.stack([m.nodes[int(i)] for i in ids]), np.searchsorted(ids, faces)
+    if local.shape[1] == 4:
+        return quad_node_areas(points, local)
+    p = points[local]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    return np.bincount(local.ravel(), np.repeat(area / 3, 3), minlength=len(points))
 
 
 def preload_depth(gaps_mm: list[np.ndarray], areas_mm2: list[np.ndarray], k_n_mm3: list[float], load_n: float) -> float:

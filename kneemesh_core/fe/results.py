@@ -241,9 +241,9 @@ def physiology(increments: list[dict], load_n: float) -> list[str]:
     return out
 
 
-def write_results(folder: Path, run, meta: dict, dat_path: Path, meshes: Path | None = None) -> dict:
-    """``results.json`` (and ``contact.png``, and the pressure maps of :mod:`.pressure_map` on the job's
-    cartilage meshes in ``meshes``) in ``folder`` from a run and its .dat file.  ``completed``
+def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
+    """``results.json`` (and ``contact.png``, and the pressure maps of :mod:`.pressure_map`) in ``folder``
+    from a run and its .dat file.  ``completed``
     needs ccx to finish and every loaded increment to be physics (:func:`first_invalid`);
     ``reached_flexion_deg`` is the last trusted increment's flexion; ``physiological`` whether the
     trusted increments meet the targets of :func:`physiology` (``physiology_reasons`` when not)."""
@@ -268,7 +268,7 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path, meshes: Path | 
               "joint_load": meta.get("joint_load"),
               "target_flexion_deg": meta["flexion_deg"], "reached_flexion_deg": round(reached, 3),
               "contact_stiffness_n_mm3": meta["contact_k"], "seating": meta["seating"],
-              "pressure_maps": write_maps(folder, meshes, meta, dat["stress"], loaded(trusted)) if meshes and dat else [],
+              "pressure_maps": write_maps(folder, meta, dat["stress"], loaded(trusted)) if dat else [],
               "increments": increments}
     atomic_write_json(folder / RESULTS_FILE, result, indent=1)
     if increments:

@@ -63,7 +63,8 @@ def write_decks(out_dir: Path, load: LoadCase = LoadCase()) -> dict:
     reasons = tibiofemoral_reasons(m)
     return {"status": "review" if reasons else "ok", "reasons": reasons, "model": "tibiofemoral" if reasons else "knee",
             "files": [f"{FE_DIR}/{f.name}" for f in files], "nodes": len(m.nodes),
-            "c3d8": int(sum(len(p.elements) for p in m.parts.values())), "springs": len(m.springs),
+            "elements": {t: int(sum(len(p.elements) for p in m.parts.values() if p.element_type == t))
+                         for t in sorted({p.element_type for p in m.parts.values()})}, "springs": len(m.springs),
             "contact_stiffness_n_mm3": m.contact_k, "seating": m.seating, "cartilage": load.cartilage,
             "flexion_deg": load.flexion_deg, "joint_load_n": load.joint_load_n, "medial_offset_mm": load.medial_offset_mm}
 
@@ -128,7 +129,7 @@ def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = Fals
     if not meta_file.exists():
         raise KneeMeshError("deck_missing", f"{meta_file} is missing: write the decks again (kneemesh mesh).")
     run = run_ccx(folder, Path(deck.CCX_FILE).stem, timeout_s)
-    return write_results(folder, run, json.loads(meta_file.read_text()), folder / "knee_ccx.dat", Path(out_dir) / MESHES_DIR)
+    return write_results(folder, run, json.loads(meta_file.read_text()), folder / "knee_ccx.dat")
 
 
 def simulation_entry(results: dict, kind: str, folder: str) -> dict:

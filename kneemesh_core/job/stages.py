@@ -135,7 +135,7 @@ def _anatomy_line(a: dict) -> str:
 
 
 def _decks_line(fe: dict) -> str:
-    return f"{', '.join(fe['files'][:3])}; {fe['c3d8']} C3D8, {fe['springs']} ligament springs"
+    return f"{', '.join(fe['files'][:3])}; {', '.join(f'{n} {t}' for t, n in fe['elements'].items())}, {fe['springs']} ligament springs"
 
 
 def _simulation_line(sim: dict) -> str:
