@@ -37,6 +37,14 @@ def quad_node_areas(points: np.ndarray, quads: np.ndarray) -> np.ndarray:
     return np.bincount(quads.ravel(), np.repeat(area / 4, 4), minlength=len(points))
 
 
+def triangle_node_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Each node's share (P,) of the area of the triangles (T, 3) around it, a third of each triangle's, in
+    the units of ``points`` (P, 3) squared."""
+    p = points[triangles]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    return np.bincount(triangles.ravel(), np.repeat(area / 3, 3), minlength=len(points))
+
+
 def interpolate_layers(bottom: np.ndarray, top: np.ndarray, layers: int) -> np.ndarray:
     """The nodes of ``layers`` element layers spaced evenly along straight columns from ``bottom``
     to ``top`` (both (P, 3)): ((layers + 1) * P, 3), layer by layer, bottom first."""

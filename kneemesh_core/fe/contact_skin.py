@@ -61,7 +61,7 @@ def skin(points: np.ndarray, triangles: np.ndarray, outward: np.ndarray, edge_mm
     triangle 1-2-3 running counter-clockwise seen from outside."""
     import pyacvd
 
-    surface = pv.PolyData(points, np.hstack([np.full((len(triangles), 1), 3), triangles]).ravel())
+    surface = pv.PolyData.from_regular_faces(points, triangles)
     clusters = max(12, int(round(surface.area / (np.sqrt(3) / 2 * edge_mm ** 2))))
     if clusters >= surface.n_points:  # already as coarse as asked
         top, faces = np.asarray(points, float), np.asarray(triangles)
@@ -112,8 +112,7 @@ def _fit(top: np.ndarray, faces: np.ndarray, unit: np.ndarray, surface_points: n
     sagitta, which on a 40 mm sphere pressed 0.5 mm into a plane cost 3 mm skins 15 % of the force.  The
     mean distance outward from the skin (``top`` (N, 3), ``faces`` (F, 3), outward ``unit`` normals (F, 3))
     to the ``surface_points`` (S, 3) nearest each node."""
-    cell, closest = pv.PolyData(top, np.hstack([np.full((len(faces), 1), 3), faces]).ravel()).find_closest_cell(
-        surface_points, return_closest_point=True)
+    cell, closest = pv.PolyData.from_regular_faces(top, faces).find_closest_cell(surface_points, return_closest_point=True)
     outward = np.einsum("ij,ij->i", surface_points - closest, unit[cell])
     owner = cKDTree(top).query(surface_points)[1]
     count = np.bincount(owner, minlength=len(top))

@@ -29,7 +29,7 @@ import pyvista as pv
 
 from kneemesh_core.fe.contact_skin import articular_surface, skin
 from kneemesh_core.fe.physics import QUADRICEPS_ORIGIN_MM, QUADRICEPS_POLE_MM, LoadCase, contact_stiffness
-from kneemesh_core.geometry import RAY_BACKOFF_MM, quad_node_areas, ray_distances
+from kneemesh_core.geometry import RAY_BACKOFF_MM, quad_node_areas, ray_distances, triangle_node_areas
 from kneemesh_core.hexmesh.quality import articular_quads
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES
 
@@ -232,9 +232,8 @@ def _add_cartilage(m: Model, tissue: str, grid: pv.UnstructuredGrid, to_deck) ->
         conn, articular, bone_side = lookup[conn], layer == top, layer == 0
     elements = np.arange(m.next_element, m.next_element + len(conn))
     m.next_element += len(conn)
-    raw = np.asarray(grid.points)
-    thick = np.linalg.norm(raw[np.asarray(grid.point_data["articular"], bool)]
-                           - raw[np.asarray(grid.point_data["bone_side"], bool)], axis=1)
+    thick = np.linalg.norm(pts[np.asarray(grid.point_data["articular"], bool)]
+                           - pts[np.asarray(grid.point_data["bone_side"], bool)], axis=1)
     m.parts[tissue] = Part(tissue, BONE_OF[tissue], elements, conn, elements[articular], elements[bone_side],
                            float(np.median(thick)))
     m.body_nodes[BONE_OF[tissue]].extend(ids.tolist())
@@ -362,11 +361,7 @@ def _node_areas(m: Model, tissue: str) -> np.ndarray:
     :func:`_articular_faces`'s ids."""
     faces, ids = _articular_faces(m, tissue)
     points, local = np.stack([m.nodes[int(i)] for i in ids]), np.searchsorted(ids, faces)
-    if local.shape[1] == 4:
-        return quad_node_areas(points, local)
-    p = points[local]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    return np.bincount(local.ravel(), np.repeat(area / 3, 3), minlength=len(points))
+    return (quad_node_areas if local.shape[1] == 4 else triangle_node_areas)(points, local)
 
 
 def preload_depth(gaps_mm: list[np.ndarray], areas_mm2: list[np.ndarray], k_n_mm3: list[float], load_n: float) -> float:

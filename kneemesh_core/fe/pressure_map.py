@@ -50,8 +50,7 @@ def write_maps(folder: Path, meta: dict, stress: dict, increments: list[dict]) -
     for tissue, surface in sorted(meta.get("slave_surfaces", {}).items()):
         faces, elements = np.asarray(surface["faces"], int), np.asarray(surface["elements"], int)
         kind = pv.CellType.TRIANGLE if faces.shape[1] == 3 else pv.CellType.QUAD
-        out = pv.UnstructuredGrid(np.hstack([np.full((len(faces), 1), faces.shape[1]), faces]).ravel(),
-                                  np.full(len(faces), kind, np.uint8), np.asarray(surface["points_lps_mm"], float))
+        out = pv.UnstructuredGrid({kind: faces}, np.asarray(surface["points_lps_mm"], float))
         lo, n = int(elements.min()), int(elements.max() - elements.min() + 1)
         for k, inc in enumerate(increments):
             out.cell_data[f"pressure_mpa_{k}"] = element_pressure(stress.get(inc["time"], []), lo, n)[elements - lo]
