@@ -549,3 +549,33 @@ def test_the_joint_load_passes_medial_of_a_right_knee_and_of_its_mirror_image(tm
         assert line["adduction_moment_nm"] == pytest.approx(offset * line["force_n"] / 1000.0, rel=0.01)
         lines[side] = np.asarray(line["through_lps_mm"])
     assert lines["left"] * [-1, 1, 1] == pytest.approx(lines["right"], abs=1.0)  # LPS x -> -x
+
+
+def test_deformable_cartilage_is_solid_with_only_its_bone_side_on_the_bone(knee):
+    """With deformable cartilage every cartilage hexahedron is a solid C3D8I of a neo-Hookean material, and of
+    its nodes only the bone side rides in a rigid body (CalculiX's body NSETs, Abaqus's pins); the rigid
+    model keeps its skins and puts all of them in."""
+    from kneemesh_core.fe.calculix import deformable_nodes
+    from kneemesh_core.fe.physics import CARTILAGE_ELEMENT, neo_hooke
+    from kneemesh_core.fe.run import read_model
+    from kneemesh_core.tissues import CARTILAGES
+
+    out, _ = knee
+    m = read_model(out, LoadCase(cartilage="deformable"))
+    cartilages = [m.parts[t] for t in CARTILAGES if t in m.parts]
+    assert cartilages and all(p.element_type == CARTILAGE_ELEMENT and p.connectivity.shape[1] == 8 for p in cartilages)
+    riding = {n for nodes in m.body_nodes.values() for n in nodes}
+    for p in cartilages:
+        grid = pv.read(out / "meshes" / f"{p.name}.vtu")
+        assert len(p.elements) == grid.n_cells
+        nodes = set(np.unique(p.connectivity).tolist())
+        bone_side = int(np.asarray(grid.point_data["bone_side"], bool).sum())
+        assert len(nodes & riding) == bone_side < len(nodes)
+    assert set(deformable_nodes(m).tolist()) == {n for p in cartilages for n in np.unique(p.connectivity).tolist()}
+    model = deck.shared(m)
+    c10, d1 = neo_hooke()
+    assert "*HYPERELASTIC, NEO HOOKE" in model and f"{c10:.6f}, {d1:.6f}" in model
+    assert f"*ELEMENT, TYPE={CARTILAGE_ELEMENT}, ELSET=FEMORAL_CARTILAGE" in model
+    rigid = read_model(out, LoadCase())
+    skin = {n for t in CARTILAGES if t in rigid.parts for n in np.unique(rigid.parts[t].connectivity).tolist()}
+    assert skin <= {n for nodes in rigid.body_nodes.values() for n in nodes}

@@ -1,6 +1,6 @@
 """``knee_abaqus.inp``: the Abaqus/Explicit dialect over the shared model (:mod:`.deck`).
 
-R3D3 bone shells, rigid bodies on element sets (with pin nodes for deformable cartilage), masses
+R3D3 bone shells, rigid bodies on element sets (with pin nodes: ligament ends, deformable cartilage's bone side), masses
 and inertias for the explicit integration, penalty contact pairs, the same restraint springs as the
 CalculiX deck (Abaqus carries a rigid body's rotations on its reference node's dofs 4-6), and
 ``*DYNAMIC, EXPLICIT`` seating and flexion steps.  Not run here: no Abaqus licence.
@@ -56,19 +56,11 @@ def deck(m: Model, include: str) -> str:
 
 
 def _rigid_bodies(m: Model) -> list[str]:
-    """Each bone a rigid body on its shell and, for rigid cartilage, its cartilage elements; for
-    deformable cartilage, the cartilage's bone-side nodes and the ligament ends ride on the bone as pins."""
+    """Each bone a rigid body on its shell and its rigid parts (a rigid cartilage's skin, the surrogates), with
+    the nodes that ride on it as pins (ligament ends, a deformable cartilage's bone-side nodes)."""
     w = []
-    bones = [b for b in BONES if b in m.ref]
-    members = {b: [p.name.upper() for p in m.parts.values() if p.body == b] for b in bones}
-    for b in bones:
-        if m.load.cartilage == "rigid":
-            w += [f"*ELSET, ELSET={b.upper()}_RIGID", ", ".join([f"{b.upper()}_SHELL", *members[b]])]
-            w.append(f"*RIGID BODY, ELSET={b.upper()}_RIGID, REF NODE={m.ref[b]}, PIN NSET={b.upper()}_BODY")
-        else:
-            parts = [m.parts[t.lower()] for t in members[b]]
-            deep = {int(n) for p in parts for n in p.connectivity[np.isin(p.elements, p.bone_side), :4].ravel()}
-            ends = {n for s in m.springs for n in s.nodes} & set(m.body_nodes[b])
-            w += inp.set_lines("NSET", f"{b.upper()}_PINS", sorted(deep | ends))
-            w.append(f"*RIGID BODY, ELSET={b.upper()}_SHELL, REF NODE={m.ref[b]}, PIN NSET={b.upper()}_PINS")
+    for b in (b for b in BONES if b in m.ref):
+        rigid = [p.name.upper() for p in m.parts.values() if p.body == b and not p.deformable]
+        w += [f"*ELSET, ELSET={b.upper()}_RIGID", ", ".join([f"{b.upper()}_SHELL", *rigid]),
+              f"*RIGID BODY, ELSET={b.upper()}_RIGID, REF NODE={m.ref[b]}, PIN NSET={b.upper()}_BODY"]
     return w

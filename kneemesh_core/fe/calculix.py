@@ -27,6 +27,16 @@ def rot_nodes(m: Model) -> dict[str, int]:
     return {b: m.next_id + i for i, b in enumerate(b for b in MOVING_BODIES if b in m.ref)}
 
 
+#: The node set whose displacement, stress and strain a run with deformable cartilage writes to the .frd.
+CARTILAGE_NODES = "CARTILAGE_NODES"
+
+
+def deformable_nodes(m: Model) -> np.ndarray:
+    """The nodes (sorted ids) of the model's deformable cartilage; empty where the cartilage is rigid."""
+    parts = [p.connectivity.ravel() for p in m.parts.values() if p.deformable]
+    return np.unique(np.concatenate(parts)) if parts else np.zeros(0, int)
+
+
 def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str) -> str:
     """Seat under the joint load and the quadriceps force, then flex the femur ``flexion_deg`` about X,
     at most ``max_increment_deg`` an increment; ``include`` is the shared model's path."""
@@ -49,6 +59,10 @@ def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str) -
     for name, (slave, master) in m.pairs.items():
         outputs += [f"*CONTACT PRINT, SLAVE={slave.upper()}_ARTICULAR, MASTER={master.upper()}_ARTICULAR", "CF"]
     outputs += ["*CONTACT PRINT", "CSTR"]
+    solid = deformable_nodes(m)
+    if len(solid):  # the deforming cartilage's fields, to the .frd (cartilage_field.py reads them)
+        w += inp.set_lines("NSET", CARTILAGE_NODES, solid)
+        outputs += [f"*NODE FILE, NSET={CARTILAGE_NODES}", "U", f"*EL FILE, NSET={CARTILAGE_NODES}", "S, E"]
     driven, dof = dof_of(FLEXION[0], FLEXION[1], FLEXION[2])
     # step 1: the femur, seated at the depth that carries the joint load (model.seat_femur), takes the whole
     # load and the quadriceps force at once; flexion held at the image pose.  The held body's nodes are held

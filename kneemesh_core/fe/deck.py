@@ -21,9 +21,9 @@ from kneemesh_core.fe import abaqus, calculix, inp
 from kneemesh_core.fe.inp import PER_LINE, set_lines
 from kneemesh_core.fe.model import PAIRS, Model, deck_rotation, deck_to_lps
 from kneemesh_core.fe.pressure_map import slave_surface
-from kneemesh_core.fe.physics import (CARTILAGE_DENSITY_T_MM3, CARTILAGE_MODULUS_MPA, CARTILAGE_POISSON,
-                                      CONFINED_MODULUS_MPA, QUADRICEPS_SLACK_MM, TRANSITION_STRAIN, ligament_table, quadriceps_table,
-                                      spring_stiffness)
+from kneemesh_core.fe.physics import (CARTILAGE_DENSITY_T_MM3, CARTILAGE_ELEMENT, CARTILAGE_MODULUS_MPA, CARTILAGE_POISSON,
+                                      CONFINED_MODULUS_MPA, DEFORMABLE_PENALTY, QUADRICEPS_SLACK_MM, TRANSITION_STRAIN,
+                                      ligament_table, neo_hooke, quadriceps_table, spring_stiffness)
 from kneemesh_core.io.files import atomic_write_text
 from kneemesh_core.tissues import BONES, CARTILAGES
 
@@ -40,7 +40,8 @@ def shared(m: Model) -> str:
         f"**   origin {m.frame['origin_lps_mm']}",
         *(f"**   {k} {v}" for k, v in m.frame["axes_lps"].items()),
         f"** {m.side} knee; cartilage {lc.cartilage}"
-        + (" (articular layer of hexahedra only: deeper layers move with the bone)" if lc.cartilage == "rigid" else ""),
+        + (" (the articular layer's contact skin, rigid with the bone)" if lc.cartilage == "rigid" else
+           f" ({CARTILAGE_ELEMENT} hexahedra, neo-Hookean; their bone-side nodes ride on the bone)"),
         "*NODE",
     ]
     w += [f"{i}, {p[0]:.6f}, {p[1]:.6f}, {p[2]:.6f}" for i, p in m.nodes.items()]
@@ -73,8 +74,7 @@ def shared(m: Model) -> str:
         bundles.setdefault(s.bundle, []).append(f"LIG_{s.name}")
     for bundle, names in bundles.items():
         w += [f"*ELSET, ELSET=BUNDLE_{bundle}", *(", ".join(names[k:k + PER_LINE]) for k in range(0, len(names), PER_LINE))]
-    w += ["*MATERIAL, NAME=CARTILAGE", "*ELASTIC", f"{CARTILAGE_MODULUS_MPA!r}, {CARTILAGE_POISSON!r}",
-          "*DENSITY", f"{CARTILAGE_DENSITY_T_MM3!r}"]
+    w += ["*MATERIAL, NAME=CARTILAGE", *_cartilage_law(lc.cartilage), "*DENSITY", f"{CARTILAGE_DENSITY_T_MM3!r}"]
     for part in m.parts.values():
         w.append(f"*SOLID SECTION, ELSET={part.name.upper()}, MATERIAL=CARTILAGE")
     w.append(f"** ligaments: Blankevoort 1991 (e = L/L0 - 1, e_t = {TRANSITION_STRAIN:g}), force (N) against elongation from the "
@@ -94,15 +94,27 @@ def shared(m: Model) -> str:
         k = m.contact_k[name]
         if name in PAIRS:  # K from the two cartilages the pair stands for
             a, b = PAIRS[name]
-            why = (f"K = M / (h_{a} + h_{b}) = {CONFINED_MODULUS_MPA:.2f} MPa / ({m.parts[a].thickness_mm:.3f} + "
+            times = f"{DEFORMABLE_PENALTY:g} x " if lc.cartilage == "deformable" else ""
+            why = (f"K = {times}M / (h_{a} + h_{b}) = {times}{CONFINED_MODULUS_MPA:.2f} MPa / ({m.parts[a].thickness_mm:.3f} + "
                    f"{m.parts[b].thickness_mm:.3f} mm)"
+                   + (" (a penalty between deforming layers: they carry the compliance)" if times else "")
                    + ("; the master also the prefemoral sheet (rigid, with the femur; fe/prefemoral.py)" if master in m.surfaces else ""))
         else:
-            why = "meniscus surrogate (rigid, with the tibia): K of its compartment"
+            why = "meniscus surrogate (rigid, with the tibia): K of its compartment's layers"
         w += [f"** {name}: {why} = {k:.4f} N/mm^3",
               f"*SURFACE INTERACTION, NAME=CONTACT_{name.upper()}", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", f"{k:.6f}"]
     w += ["*AMPLITUDE, NAME=RAMP", "0.0, 0.0, 1.0, 1.0", "*AMPLITUDE, NAME=HOLD", "0.0, 1.0, 1.0, 1.0"]
     return "\n".join(w) + "\n"
+
+
+def _cartilage_law(cartilage: str) -> list[str]:
+    """The cartilage material's lines: linear elastic where it is rigid (the constants behind the contact
+    law), neo-Hookean with the same small-strain constants where it deforms (:func:`neo_hooke`)."""
+    if cartilage == "rigid":
+        return ["*ELASTIC", f"{CARTILAGE_MODULUS_MPA!r}, {CARTILAGE_POISSON!r}"]
+    c10, d1 = neo_hooke()
+    return [f"** neo-Hookean: E {CARTILAGE_MODULUS_MPA:g} MPa, nu {CARTILAGE_POISSON:g} at small strain (C10 = G / 2, D1 = 2 / K)",
+            "*HYPERELASTIC, NEO HOOKE", f"{c10:.6f}, {d1:.6f}"]
 
 
 def joint_load_line(m: Model) -> dict:

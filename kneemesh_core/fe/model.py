@@ -28,7 +28,8 @@ import numpy as np
 import pyvista as pv
 
 from kneemesh_core.fe.contact_skin import articular_surface, skin
-from kneemesh_core.fe.physics import QUADRICEPS_ORIGIN_MM, QUADRICEPS_POLE_MM, LoadCase, contact_stiffness
+from kneemesh_core.fe.physics import (CARTILAGE_ELEMENT, QUADRICEPS_ORIGIN_MM, QUADRICEPS_POLE_MM, LoadCase, contact_stiffness,
+                                      penalty_stiffness)
 from kneemesh_core.geometry import RAY_BACKOFF_MM, quad_node_areas, ray_distances, triangle_node_areas
 from kneemesh_core.hexmesh.quality import articular_quads
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES
@@ -42,7 +43,9 @@ PAIRS = {"medial": ("medial_tibial_cartilage", "femoral_cartilage"),
 @dataclass
 class Part:
     """One cartilage (or surrogate) in the deck: element ids and their nodes (global ids), hexahedra in C3D8
-    order or, for a rigid cartilage's contact skin (:mod:`.contact_skin`), wedges in C3D6 order."""
+    order or, for a rigid cartilage's contact skin (:mod:`.contact_skin`), wedges in C3D6 order.  A
+    ``deformable`` cartilage's hexahedra are solid (:data:`~kneemesh_core.fe.physics.CARTILAGE_ELEMENT`); the
+    rest are rigid with their body."""
 
     name: str
     body: str
@@ -51,15 +54,16 @@ class Part:
     articular: np.ndarray  # (A,) element ids whose S2 face is articular
     bone_side: np.ndarray  # (B,) element ids whose S1 face lies on the bone side
     thickness_mm: float
+    deformable: bool = False
 
     @property
     def element_type(self) -> str:
-        return {8: "C3D8", 6: "C3D6"}[self.connectivity.shape[1]]
+        return CARTILAGE_ELEMENT if self.deformable else {8: "C3D8", 6: "C3D6"}[self.connectivity.shape[1]]
 
     def articular_faces(self) -> np.ndarray:
         """The articular (S2) faces of its articular elements, (A, 4) quads or (A, 3) triangles of global ids."""
         conn = self.connectivity[np.searchsorted(self.elements, self.articular)]
-        return articular_quads(conn) if self.element_type == "C3D8" else conn[:, 3:]
+        return articular_quads(conn) if conn.shape[1] == 8 else conn[:, 3:]
 
 
 @dataclass
@@ -172,8 +176,9 @@ def build(bones: dict[str, pv.PolyData], cartilages: dict[str, pv.UnstructuredGr
     for tissue in (t for t in CARTILAGES if t in cartilages):
         _add_cartilage(m, tissue, cartilages[tissue], to_deck)
     m.pairs = {name: pair for name, pair in PAIRS.items() if all(t in m.parts for t in pair)}
+    law = penalty_stiffness if load.cartilage == "deformable" else contact_stiffness
     for name, (slave, master) in m.pairs.items():
-        m.contact_k[name] = contact_stiffness(m.parts[slave].thickness_mm, m.parts[master].thickness_mm)
+        m.contact_k[name] = law(m.parts[slave].thickness_mm, m.parts[master].thickness_mm)
     # reference nodes: femur and patella at their frames' origins, tibia at the tibial frame's
     for body in present:
         m.ref[body] = int(m.add_nodes(to_deck(np.asarray(frames[body]["origin_mm"])[None]))[0])
@@ -210,9 +215,10 @@ def _add_bones(m: Model, points: dict[str, np.ndarray], triangles: dict[str, np.
 
 def _add_cartilage(m: Model, tissue: str, grid: pv.UnstructuredGrid, to_deck) -> None:
     """One cartilage in the deck, with its bone's body: a rigid cartilage as the contact skin of its
-    articular layer (:mod:`.contact_skin`), a deformable one as all its hexahedra (in the mesh's order), their
-    articular layer's S2 faces in contact and the deepest layer's S1 faces on the bone.  Its thickness for the
-    contact law is the median length of its columns (their nodes are stacked layer by layer)."""
+    articular layer (:mod:`.contact_skin`), all of it moving with the bone; a deformable one as all its
+    hexahedra (in the mesh's order), their articular layer's S2 faces in contact and the deepest layer's S1
+    faces on the bone, only its bone-side nodes moving with the bone.  Its thickness for the contact law is
+    the median length of its columns (their nodes are stacked layer by layer)."""
     layer = np.asarray(grid.cell_data["layer"])
     top = int(layer.max())
     hexes = np.asarray(grid.cells_dict[pv.CellType.HEXAHEDRON])
@@ -223,6 +229,7 @@ def _add_cartilage(m: Model, tissue: str, grid: pv.UnstructuredGrid, to_deck) ->
         nodes, conn = skin(points, triangles, outward)
         ids = m.add_nodes(nodes)
         conn, articular, bone_side = ids[conn], np.ones(len(conn), bool), np.ones(len(conn), bool)
+        carried = ids
     else:
         conn = hexes
         used = np.unique(conn)
@@ -230,13 +237,14 @@ def _add_cartilage(m: Model, tissue: str, grid: pv.UnstructuredGrid, to_deck) ->
         lookup = np.zeros(grid.n_points, int)
         lookup[used] = ids
         conn, articular, bone_side = lookup[conn], layer == top, layer == 0
+        carried = lookup[np.flatnonzero(np.asarray(grid.point_data["bone_side"], bool))]
     elements = np.arange(m.next_element, m.next_element + len(conn))
     m.next_element += len(conn)
     thick = np.linalg.norm(pts[np.asarray(grid.point_data["articular"], bool)]
                            - pts[np.asarray(grid.point_data["bone_side"], bool)], axis=1)
     m.parts[tissue] = Part(tissue, BONE_OF[tissue], elements, conn, elements[articular], elements[bone_side],
-                           float(np.median(thick)))
-    m.body_nodes[BONE_OF[tissue]].extend(ids.tolist())
+                           float(np.median(thick)), deformable=m.load.cartilage == "deformable")
+    m.body_nodes[BONE_OF[tissue]].extend(carried.tolist())
 
 
 def _add_ligaments(m: Model, fibres: list[dict], to_deck) -> None:
@@ -306,7 +314,7 @@ def add_menisci(m: Model, flexion_deg: float) -> None:
         name = f"{side}_meniscus"
         _add_surrogate(m, name, "tibia", nodes, hexes, LAYER_MM)
         m.pairs[name] = (name, "femoral_cartilage")
-        m.contact_k[name] = m.contact_k[side]
+        m.contact_k[name] = layers_k(m, side)
 
 
 def add_prefemoral(m: Model) -> None:
@@ -351,8 +359,19 @@ def gaps(m: Model, slave: str, master: str, direction: np.ndarray) -> np.ndarray
     return ray_distances(_surface(m, slave)[0] - back * direction, direction, *_surface(m, master)) - back
 
 
+def layers_k(m: Model, pair: str) -> float:
+    """The elastic-foundation stiffness (N/mm^3) of a cartilage pair's two layers
+    (:func:`~kneemesh_core.fe.physics.contact_stiffness`): the contact law of rigid cartilage, what seats the
+    femur, and the meniscus surrogates' law, whether or not the cartilage itself deforms."""
+    slave, master = PAIRS[pair]
+    return contact_stiffness(m.parts[slave].thickness_mm, m.parts[master].thickness_mm)
+
+
 def _move(m: Model, body: str, shift: np.ndarray) -> None:
-    for n in {*m.body_nodes[body], *m.bone_nodes[body].tolist(), m.ref[body]}:
+    """Move a body by ``shift`` (3,), mm: its bone, reference node, the nodes that ride on it and its parts'."""
+    nodes = {*m.body_nodes[body], *m.bone_nodes[body].tolist(), m.ref[body]}
+    nodes.update(int(n) for p in m.parts.values() if p.body == body for n in np.unique(p.connectivity))
+    for n in nodes:
         m.nodes[int(n)] = m.nodes[int(n)] + shift
 
 
@@ -392,7 +411,7 @@ def seat_femur(m: Model) -> dict:
     g = np.concatenate(list(before.values()))
     touch = -float(np.nanmin(g)) if np.isfinite(g).any() else 0.0
     depth = preload_depth([v + touch for v in before.values()],
-                          [_node_areas(m, PAIRS[p][0]) for p in before], [m.contact_k[p] for p in before], m.load.joint_load_n)
+                          [_node_areas(m, PAIRS[p][0]) for p in before], [layers_k(m, p) for p in before], m.load.joint_load_n)
     shift = touch - depth
     _move(m, "femur", shift * z)
     return {"gaps": before, "shift_mm": shift, "depth_mm": depth}

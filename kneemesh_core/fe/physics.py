@@ -30,11 +30,39 @@ CARTILAGE_DENSITY_T_MM3 = 1.1e-9
 CONFINED_MODULUS_MPA = CARTILAGE_MODULUS_MPA * (1 - CARTILAGE_POISSON) / ((1 + CARTILAGE_POISSON) * (1 - 2 * CARTILAGE_POISSON))
 
 
+#: The element of deformable cartilage: ccx's and Abaqus's C3D8I, the trilinear hexahedron with incompatible
+#: modes.  Fully integrated, so it cannot hourglass (C3D8R can, and does under concentrated contact); its
+#: enhanced modes free the bending and volumetric modes a plain C3D8 locks in thin, nearly incompressible
+#: layers.  ccx has no hybrid (C3D8H) element.  On a 2 mm layer pressed by a rigid sphere (1 mm elements,
+#: nu 0.45) C3D8 was 1.8 % stiffer than C3D8R, C3D8I between them; all three give a uniform compression exactly.
+CARTILAGE_ELEMENT = "C3D8I"
+
+
+def neo_hooke() -> tuple[float, float]:
+    """The compressible neo-Hookean constants (C10 MPa, D1 1/MPa) of deformable cartilage whose small-strain
+    modulus and Poisson ratio are :data:`CARTILAGE_MODULUS_MPA` and :data:`CARTILAGE_POISSON`: C10 = G / 2,
+    D1 = 2 / K (Abaqus's and ccx's ``*HYPERELASTIC, NEO HOOKE``)."""
+    e, nu = CARTILAGE_MODULUS_MPA, CARTILAGE_POISSON
+    return e / (4 * (1 + nu)), 6 * (1 - 2 * nu) / e
+
+
+#: Deformable cartilages touch through a penalty this many times stiffer than the two layers it joins
+#: (:func:`contact_stiffness`), so that the surfaces overlap by 1/20 of the layers' own compression: the
+#: cartilage, not the contact law, carries the compliance.  Stiffer penalties slow ccx's Newton iterations.
+DEFORMABLE_PENALTY = 20.0
+
+
 def contact_stiffness(thickness_a_mm: float, thickness_b_mm: float) -> float:
     """The linear pressure-overclosure stiffness (N/mm^3) of two cartilage layers in contact: each a
     thin elastic layer on bone (the elastic foundation of Blankevoort et al. 1991 and Bei & Fregly
     2004), springs in series, K = M / (h_a + h_b), rounded as the deck states it."""
     return round(CONFINED_MODULUS_MPA / (thickness_a_mm + thickness_b_mm), 4)
+
+
+def penalty_stiffness(thickness_a_mm: float, thickness_b_mm: float) -> float:
+    """The linear pressure-overclosure stiffness (N/mm^3) between two deformable cartilages:
+    :data:`DEFORMABLE_PENALTY` times the layers' own (:func:`contact_stiffness`)."""
+    return round(DEFORMABLE_PENALTY * contact_stiffness(thickness_a_mm, thickness_b_mm), 4)
 
 
 # -- ligaments ---------------------------------------------------------------------------------
