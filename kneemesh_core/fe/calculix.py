@@ -60,7 +60,7 @@ def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str) -
         outputs += [f"*CONTACT PRINT, SLAVE={slave.upper()}_ARTICULAR, MASTER={master.upper()}_ARTICULAR", "CF"]
     outputs += ["*CONTACT PRINT", "CSTR"]
     solid = deformable_nodes(m)
-    if len(solid):  # the deforming cartilage's fields, to the .frd (cartilage_field.py reads them)
+    if len(solid):  # the deforming cartilage's fields, to the .frd (not read into the results yet: #48)
         w += inp.set_lines("NSET", CARTILAGE_NODES, solid)
         outputs += [f"*NODE FILE, NSET={CARTILAGE_NODES}", "U", f"*EL FILE, NSET={CARTILAGE_NODES}", "S, E"]
     driven, dof = dof_of(FLEXION[0], FLEXION[1], FLEXION[2])

@@ -370,7 +370,8 @@ def layers_k(m: Model, pair: str) -> float:
 def _move(m: Model, body: str, shift: np.ndarray) -> None:
     """Move a body by ``shift`` (3,), mm: its bone, reference node, the nodes that ride on it and its parts'."""
     nodes = {*m.body_nodes[body], *m.bone_nodes[body].tolist(), m.ref[body]}
-    nodes.update(int(n) for p in m.parts.values() if p.body == body for n in np.unique(p.connectivity))
+    for part in (p for p in m.parts.values() if p.body == body):
+        nodes.update(np.unique(part.connectivity).tolist())
     for n in nodes:
         m.nodes[int(n)] = m.nodes[int(n)] + shift
 

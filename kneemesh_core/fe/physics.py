@@ -31,7 +31,7 @@ CONFINED_MODULUS_MPA = CARTILAGE_MODULUS_MPA * (1 - CARTILAGE_POISSON) / ((1 + C
 
 
 #: The element of deformable cartilage: ccx's and Abaqus's C3D8I, the trilinear hexahedron with incompatible
-#: modes.  Fully integrated, so it cannot hourglass (C3D8R can, and does under concentrated contact); its
+#: modes.  Fully integrated, so it has no hourglass modes (C3D8R has, held only by hourglass control); its
 #: enhanced modes free the bending and volumetric modes a plain C3D8 locks in thin, nearly incompressible
 #: layers.  ccx has no hybrid (C3D8H) element.  On a 2 mm layer pressed by a rigid sphere (1 mm elements,
 #: nu 0.45) C3D8 was 1.8 % stiffer than C3D8R, C3D8I between them; all three give a uniform compression exactly.
@@ -48,7 +48,7 @@ def neo_hooke() -> tuple[float, float]:
 
 #: Deformable cartilages touch through a penalty this many times stiffer than the two layers it joins
 #: (:func:`contact_stiffness`), so that the surfaces overlap by 1/20 of the layers' own compression: the
-#: cartilage, not the contact law, carries the compliance.  Stiffer penalties slow ccx's Newton iterations.
+#: cartilage, not the contact law, carries the compliance.
 DEFORMABLE_PENALTY = 20.0
 
 
