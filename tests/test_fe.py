@@ -556,6 +556,7 @@ def test_deformable_cartilage_is_solid_with_only_its_bone_side_on_the_bone(knee)
     its nodes only the bone side rides in a rigid body (CalculiX's body NSETs, Abaqus's pins); the rigid
     model keeps its skins and puts all of them in."""
     from kneemesh_core.fe.calculix import deformable_nodes
+    from kneemesh_core.fe.model import _node_areas, gaps, layers_k
     from kneemesh_core.fe.physics import CARTILAGE_ELEMENT, neo_hooke
     from kneemesh_core.fe.run import read_model
     from kneemesh_core.tissues import CARTILAGES
@@ -576,6 +577,12 @@ def test_deformable_cartilage_is_solid_with_only_its_bone_side_on_the_bone(knee)
     c10, d1 = neo_hooke()
     assert "*HYPERELASTIC, NEO HOOKE" in model and f"{c10:.6f}, {d1:.6f}" in model
     assert f"*ELEMENT, TYPE={CARTILAGE_ELEMENT}, ELSET=FEMORAL_CARTILAGE" in model
+    # the patella starts pressed into the trochlea by the depth that carries the quadriceps force (a deforming
+    # layer seated at a mere touch is driven through the trochlea's by the solver's first iteration)
+    pf = np.fmin.reduce([gaps(m, "patellar_cartilage", master, -m.patella_anterior)
+                         for master in ("femoral_cartilage", "prefemoral") if master in m.parts])
+    carried = layers_k(m, "patellofemoral") * np.sum(_node_areas(m, "patellar_cartilage") * np.clip(-np.nan_to_num(pf), 0, None))
+    assert carried == pytest.approx(m.load.quadriceps_n, rel=0.02)
     rigid = read_model(out, LoadCase())
     skin = {n for t in CARTILAGES if t in rigid.parts for n in np.unique(rigid.parts[t].connectivity).tolist()}
     assert skin <= {n for nodes in rigid.body_nodes.values() for n in nodes}

@@ -420,12 +420,18 @@ def seat_femur(m: Model) -> dict:
 
 def seat_patella(m: Model) -> dict:
     """Seat the patella along its anterior axis until it just touches the femoral cartilage or the
-    prefemoral sheet (:func:`add_prefemoral`), whichever it meets first.  Returns its gaps to them,
-    measured after the femur was seated, and the shift."""
+    prefemoral sheet (:func:`add_prefemoral`), whichever it meets first; deformable cartilage on by the
+    depth at which the patellofemoral layers carry the quadriceps force (:func:`preload_depth`).  From a
+    mere touch the solver's first iteration moves the patella freely (no contact stiffness yet): a rigid
+    skin takes the overlap that follows and recovers, a deforming layer is driven through the trochlea's and
+    the run diverges.  Returns its gaps to them, measured after the femur was seated, and the shift."""
     toward = -m.patella_anterior  # the patella's articular side faces posterior, towards the trochlea
     pf = np.fmin.reduce([gaps(m, "patellar_cartilage", master, toward)
                          for master in ("femoral_cartilage", "prefemoral") if master in m.parts])
     shift = float(np.nanmin(pf)) if np.isfinite(pf).any() else 0.0
+    if m.load.cartilage == "deformable":
+        shift += preload_depth([pf - shift], [_node_areas(m, "patellar_cartilage")], [layers_k(m, "patellofemoral")],
+                               m.load.quadriceps_n)
     _move(m, "patella", shift * toward)
     return {"gaps": pf, "shift_mm": shift}
 
