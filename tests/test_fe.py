@@ -552,9 +552,10 @@ def test_the_joint_load_passes_medial_of_a_right_knee_and_of_its_mirror_image(tm
 
 
 def test_deformable_cartilage_is_solid_with_only_its_bone_side_on_the_bone(knee):
-    """With deformable cartilage every cartilage hexahedron is a solid (physics.CARTILAGE_ELEMENT) of a neo-Hookean material, and of
-    its nodes only the bone side rides in a rigid body (CalculiX's body NSETs, Abaqus's pins); the rigid
-    model keeps its skins and puts all of them in."""
+    """With deformable cartilage every cartilage hexahedron is a solid (physics.CARTILAGE_ELEMENT) of a
+    neo-Hookean material, and of its nodes only the bone side rides in a rigid body (CalculiX's body NSETs,
+    Abaqus's pins); the patella starts pressed in by the quadriceps force; the rigid model keeps its skins and
+    puts all of them in."""
     from kneemesh_core.fe.calculix import deformable_nodes
     from kneemesh_core.fe.model import _node_areas, gaps, layers_k
     from kneemesh_core.fe.physics import CARTILAGE_ELEMENT, neo_hooke
