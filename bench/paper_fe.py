@@ -54,12 +54,12 @@ def ours(out: Path, load_n: float, offset_mm: float) -> dict | None:
     force (N, with the meniscus surrogate), area (mm^2), peak (MPa) and centre of pressure (mesh frame,
     mm); None when the run did not reach it."""
     from kneemesh_core.fe.physics import LoadCase
-    from kneemesh_core.fe.results import LOADED_AT
+    from kneemesh_core.fe.results import loaded
     from kneemesh_core.fe.run import deck_load, simulate
 
     load = replace(deck_load(out / "fe") or LoadCase(), joint_load_n=round(load_n), medial_offset_mm=offset_mm)
     r = simulate(out, flexion_deg=1.0, load=load, timeout_s=900)
-    seated = next((i for i in r["increments"] if i["time"] >= LOADED_AT), None)
+    seated = next(iter(loaded(r["increments"])), None)
     if seated is None:
         return None
     to_mesh = np.array([-1.0, -1.0, 1.0])  # LPS -> the maps' mesh frame (README.md)

@@ -1,12 +1,15 @@
 """Simulation benchmark: CalculiX runs of the decks of real knees, smoke (to 15 deg) and full (to 90 deg).
 
-    .venv/bin/python bench/simulate.py [MAPS_OR_GLOBS ...] [--full N] [--element-size 1.0] [--timeout 1800] [--json F] [--threads T]
+    .venv/bin/python bench/simulate.py [MAPS_OR_GLOBS ...] [--full N] [--deformable] [--element-size 1.0] [--timeout 1800]
+                                       [--json F] [--threads T]
 
 Default maps: the real label maps in ../shared/data/real (pymskt and oai_labels).  Each knee is meshed
 as the job does (bones, cartilage, anatomy, decks), then simulated: smoke on every knee, full flexion on
 the first N (listed).  Prints completion and physiology (:func:`kneemesh_core.fe.results.physiology`),
 time, the reason of each failure or miss, the contact figures at the end of the run, the femur's force
 balance and the plates' peak pressure over the run; one knee at a time (ccx on ``--threads``).
+``--deformable`` adds the smoke run with deformable cartilage and sets its contact (plates' area and peak in
+extension and at 15 deg) beside the rigid model's, with the cartilage's peak stress and strains.
 """
 
 from __future__ import annotations
@@ -28,10 +31,16 @@ REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 console = make_console()
 
 
-def one(path: str, element_size: float, full: bool, timeout: float) -> dict:
+#: The runs of a knee: name -> (smoke, cartilage).
+RUNS = {"smoke": (True, "rigid"), "deformable": (True, "deformable"), "full": (False, "rigid")}
+
+
+def one(path: str, element_size: float, kinds: list[str], timeout: float) -> dict:
     warnings.filterwarnings("ignore")
-    from kneemesh_core.fe.results import plates_peak
-    from kneemesh_core.fe.run import simulate
+    from dataclasses import replace
+
+    from kneemesh_core.fe.results import loaded, plates_peak
+    from kneemesh_core.fe.run import FE_DIR, deck_load, simulate
     from kneemesh_core.job import JobRequest, run
 
     with tempfile.TemporaryDirectory(prefix="kneemesh-sim-") as tmp:
@@ -41,9 +50,11 @@ def one(path: str, element_size: float, full: bool, timeout: float) -> dict:
         if report.get("fe", {}).get("status") != "ok":
             return {"knee": Path(path).name, "error": report.get("fe", {}).get("reason", "no decks")}
         out = {"knee": Path(path).name, "mesh_seconds": mesh_s, "seating": report["fe"]["seating"]}
-        for kind in ("smoke", "full") if full else ("smoke",):
+        for kind in kinds:
+            smoke, cartilage = RUNS[kind]
             try:
-                r = simulate(Path(tmp), smoke=kind == "smoke", timeout_s=timeout)
+                r = simulate(Path(tmp), smoke=smoke, timeout_s=timeout,
+                             load=replace(deck_load(Path(tmp) / FE_DIR), cartilage=cartilage))
             except Exception as exc:  # noqa: BLE001 - the benchmark records every failure
                 out[kind] = {"completed": False, "reason": f"{type(exc).__name__}: {exc}", "seconds": 0.0}
                 continue
@@ -51,6 +62,7 @@ def one(path: str, element_size: float, full: bool, timeout: float) -> dict:
             peak = plates_peak(r["increments"])[0]
             out[kind] = {"completed": r["completed"], "reason": r["reason"], "seconds": r["seconds"],
                          "reached": r["reached_flexion_deg"], "last": last, "plate_peak_mpa": peak,
+                         "first": next(iter(loaded(r["increments"])), {}),
                          "physiology_reasons": r["physiology_reasons"]}
         return out
 
@@ -59,6 +71,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("maps", nargs="*")
     ap.add_argument("--full", type=int, default=0, help="also run the full flexion on the first N knees")
+    ap.add_argument("--deformable", action="store_true", help="also the smoke run with deformable cartilage")
     ap.add_argument("--element-size", type=float, default=1.0)
     ap.add_argument("--timeout", type=float, default=1800.0)
     ap.add_argument("--json", type=Path)
@@ -72,11 +85,12 @@ def main() -> None:
         str(p) for p in sorted((REAL / "pymskt" / "labels").glob("*.nrrd")) + sorted((REAL / "oai_labels").glob("*.nii.gz"))]
     rows = []
     for i, m in enumerate(maps):
-        r = one(m, args.element_size, i < args.full, args.timeout)
+        r = one(m, args.element_size, ["smoke", *(["deformable"] if args.deformable else []), *(["full"] if i < args.full else [])],
+                args.timeout)
         rows.append(r)
         msg = r.get("error") or "; ".join(
             f"{k}: {'completed' if r[k]['completed'] else 'stopped (' + str(r[k]['reason']) + ')'} in {r[k]['seconds']:.0f} s"
-            for k in ("smoke", "full") if k in r)
+            for k in RUNS if k in r)
         console.print(f"[{i + 1}/{len(maps)}] {r['knee']}: {msg}", highlight=False)
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1, default=float))
@@ -84,7 +98,7 @@ def main() -> None:
     for col in ("run", "completed", "completed, physiological", "seconds: median (max)", "medial N / mm^2 / peak MPa", "lateral", "balance error max",
                 "plates' peak MPa over the run: median (max)"):
         table.add_column(col)
-    for kind in ("smoke", "full"):
+    for kind in RUNS:
         rs = [r[kind] for r in rows if kind in r]
         if not rs:
             continue
@@ -103,12 +117,36 @@ def main() -> None:
                       f"{np.median([x['plate_peak_mpa'] for x in done]):.1f} ({max(x['plate_peak_mpa'] for x in done):.1f})"
                       if done else "-")
     console.print(table)
+    if args.deformable:
+        console.print(deformable_table(rows))
     for r in rows:
-        for kind in ("smoke", "full"):
+        for kind in RUNS:
             if kind in r and not r[kind]["completed"]:
                 console.print(f"{r['knee']} {kind}: {r[kind]['reason']}", highlight=False)
             elif kind in r and r[kind]["physiology_reasons"]:
                 console.print(f"{r['knee']} {kind}: completed, but " + "; ".join(r[kind]["physiology_reasons"]), highlight=False)
+
+
+def deformable_table(rows: list[dict]) -> Table:
+    """Deformable against rigid cartilage on the knees where both smoke runs completed: per plate, the
+    medians of area (mm^2) and peak pressure (MPa) in extension and at 15 deg, and of the cartilages' peaks."""
+    both = [r for r in rows if r.get("smoke", {}).get("completed") and r.get("deformable", {}).get("completed")]
+    table = Table(title=f"deformable against rigid cartilage, smoke runs, {len(both)} knees (medians; area mm^2 / peak MPa)")
+    for col in ("plate", "when", "rigid", "deformable", "area ratio (median, range)"):
+        table.add_column(col)
+    for side in ("medial", "lateral"):
+        for when in ("first", "last"):
+            fig = {k: np.array([[r[k][when][side]["area_mm2"], r[k][when][side]["peak_pressure_mpa"]] for r in both])
+                   for k in ("smoke", "deformable")} if both else {}
+            ratio = fig["deformable"][:, 0] / np.maximum(fig["smoke"][:, 0], 1e-9) if both else np.array([np.nan])
+            table.add_row(side, "extension" if when == "first" else "15 deg",
+                          *(" / ".join(f"{v:.1f}" for v in np.median(fig[k], 0)) if both else "-" for k in ("smoke", "deformable")),
+                          f"{np.median(ratio):.2f} ({ratio.min():.2f}-{ratio.max():.2f})")
+    for tissue in sorted({t for r in both for t in r["deformable"]["last"].get("cartilage", {})}):
+        peaks = [r["deformable"]["last"]["cartilage"][tissue] for r in both if tissue in r["deformable"]["last"].get("cartilage", {})]
+        table.add_row(tissue, "15 deg", "", "von Mises {:.1f} MPa, compressive {:.2f}, shear {:.2f}".format(
+            *(np.median([p[k] for p in peaks]) for k in ("peak_von_mises_mpa", "peak_compressive_strain", "peak_shear_strain"))), "")
+    return table
 
 
 if __name__ == "__main__":

@@ -554,10 +554,8 @@ def test_the_joint_load_passes_medial_of_a_right_knee_and_of_its_mirror_image(tm
 def test_deformable_cartilage_is_solid_with_only_its_bone_side_on_the_bone(knee):
     """With deformable cartilage every cartilage hexahedron is a solid (physics.CARTILAGE_ELEMENT) of a
     neo-Hookean material, and of its nodes only the bone side rides in a rigid body (CalculiX's body NSETs,
-    Abaqus's pins); the patella starts pressed in by the quadriceps force; the rigid model keeps its skins and
-    puts all of them in."""
+    Abaqus's pins); the rigid model keeps its skins and puts all of them in."""
     from kneemesh_core.fe.calculix import deformable_nodes
-    from kneemesh_core.fe.model import _node_areas, gaps, layers_k
     from kneemesh_core.fe.physics import CARTILAGE_ELEMENT, neo_hooke
     from kneemesh_core.fe.run import read_model
     from kneemesh_core.tissues import CARTILAGES
@@ -578,12 +576,136 @@ def test_deformable_cartilage_is_solid_with_only_its_bone_side_on_the_bone(knee)
     c10, d1 = neo_hooke()
     assert "*HYPERELASTIC, NEO HOOKE" in model and f"{c10:.6f}, {d1:.6f}" in model
     assert f"*ELEMENT, TYPE={CARTILAGE_ELEMENT}, ELSET=FEMORAL_CARTILAGE" in model
-    # the patella starts pressed into the trochlea by the depth that carries the quadriceps force (a deforming
-    # layer seated at a mere touch is driven through the trochlea's by the solver's first iteration)
-    pf = np.fmin.reduce([gaps(m, "patellar_cartilage", master, -m.patella_anterior)
-                         for master in ("femoral_cartilage", "prefemoral") if master in m.parts])
-    carried = layers_k(m, "patellofemoral") * np.sum(_node_areas(m, "patellar_cartilage") * np.clip(-np.nan_to_num(pf), 0, None))
-    assert carried == pytest.approx(m.load.quadriceps_n, rel=0.02)
     rigid = read_model(out, LoadCase())
     skin = {n for t in CARTILAGES if t in rigid.parts for n in np.unique(rigid.parts[t].connectivity).tolist()}
     assert skin <= {n for nodes in rigid.body_nodes.values() for n in nodes}
+
+
+def _neo_hooke_uniaxial(stretch: float) -> tuple[float, float]:
+    """The lateral stretch and the axial Cauchy stress (MPa) of the deck's compressible neo-Hookean cartilage
+    (physics.neo_hooke: W = C10 (I1bar - 3) + (J - 1)^2 / D1) in uniaxial stress at axial ``stretch``."""
+    from scipy.optimize import brentq
+
+    from kneemesh_core.fe.physics import neo_hooke
+
+    c10, d1 = neo_hooke()
+
+    def stress(mu: float) -> np.ndarray:  # Cauchy: 2 C10 / J dev(Bbar) + 2 / D1 (J - 1) I
+        b = np.array([mu ** 2, mu ** 2, stretch ** 2])
+        j = mu * mu * stretch
+        bbar = j ** (-2.0 / 3.0) * b
+        return 2.0 * c10 / j * (bbar - bbar.sum() / 3.0) + 2.0 / d1 * (j - 1.0)
+
+    mu = brentq(lambda x: stress(x)[0], 0.9, 1.1)
+    return mu, float(stress(mu)[2])
+
+
+def test_a_deformable_block_pressed_by_a_frictionless_rigid_plate_has_the_analytic_stress_and_strain(tmp_path):
+    """A block of the deck's deformable cartilage (element, neo-Hookean material) between two frictionless
+    rigid plates, the lower one held and the upper one pressed 3 % down (the faces' nodes held or moved along
+    z only, free to slide): uniaxial stress.  The .frd reader's stress and strain match the analytic
+    solution at every node: von Mises stress |sigma_zz|, compressive strain -E_zz and shear strain
+    E_xx - E_zz (Lagrangian, as ccx writes them under NLGEOM)."""
+    from kneemesh_core.fe.cartilage_fields import principal, read_frd, summaries, von_mises
+    from kneemesh_core.fe.physics import CARTILAGE_ELEMENT
+
+    nodes, hexes, _, _ = _block(2, 0.0, 1, 1)
+    squeeze = 0.03
+    bottom = [n for n, p in nodes.items() if p[2] < 1e-9]
+    top = [n for n, p in nodes.items() if p[2] > 1 - 1e-9]
+    corner = next(n for n in bottom if nodes[n][0] < 1e-9 and nodes[n][1] < 1e-9)
+    beside = next(n for n in bottom if nodes[n][0] > 1 - 1e-9 and nodes[n][1] < 1e-9)
+    w = ["*NODE", *(f"{n}, {p[0]:.6f}, {p[1]:.6f}, {p[2]:.6f}" for n, p in nodes.items()),
+         f"*ELEMENT, TYPE={CARTILAGE_ELEMENT}, ELSET=BLOCK", *(f"{e}, " + ", ".join(str(int(x)) for x in c) for e, c in hexes.items()),
+         *set_lines("NSET", "ALL", sorted(nodes)), "*MATERIAL, NAME=CARTILAGE", *deck.cartilage_law("deformable"),
+         "*SOLID SECTION, ELSET=BLOCK, MATERIAL=CARTILAGE", "*STEP, NLGEOM", "*STATIC", "0.25, 1.0", "*BOUNDARY",
+         *(f"{n}, 3, 3, 0.0" for n in bottom), f"{corner}, 1, 2, 0.0", f"{beside}, 2, 2, 0.0",
+         *(f"{n}, 3, 3, {-squeeze}" for n in top), "*NODE FILE, NSET=ALL", "U", "*EL FILE, NSET=ALL", "S, E", "*END STEP"]
+    (tmp_path / "block.inp").write_text("\n".join(w) + "\n")
+    run = run_ccx(tmp_path, "block", timeout_s=120)
+    assert run.completed, run.reason
+    frd = read_frd(tmp_path / "block.frd")
+    assert len(frd["hexes"][0]) == len(hexes) and len(frd["nodes"][0]) == len(nodes)
+    last = frd["steps"][-1]
+    assert last["time"] == pytest.approx(1.0)
+    stretch = 1.0 - squeeze
+    mu, sigma = _neo_hooke_uniaxial(stretch)
+    stress, strain = last["blocks"]["STRESS"][1], last["blocks"]["TOSTRAIN"][1]
+    assert von_mises(stress) == pytest.approx(abs(sigma), rel=1e-3)
+    e = principal(strain)
+    assert e[:, 0] == pytest.approx((stretch ** 2 - 1) / 2, rel=1e-3)  # E_zz
+    assert e[:, 2] == pytest.approx((mu ** 2 - 1) / 2, rel=1e-3)  # E_xx = E_yy
+    assert last["blocks"]["DISP"][1][:, 2].min() == pytest.approx(-squeeze, rel=1e-6)
+    peaks = summaries(frd, {"block": [1, len(hexes)]})[last["time"]]["block"]
+    assert peaks["peak_von_mises_mpa"] == pytest.approx(abs(sigma), rel=1e-3)
+    assert peaks["peak_compressive_strain"] == pytest.approx((1 - stretch ** 2) / 2, rel=1e-3)
+    assert peaks["peak_shear_strain"] == pytest.approx((mu ** 2 - stretch ** 2) / 2, rel=1e-3)
+
+
+def test_a_deformable_smoke_run_of_a_real_knee_balances_and_reports_the_cartilage_stress_and_strain(knee):
+    """``kneemesh simulate --fe-cartilage deformable`` on a real knee: a model of its own whose CalculiX run
+    starts from the rigid model's seated equilibrium (carried there, then released: from the seated pose it
+    diverges), completes the smoke flexion with the femur's forces balanced, and reports per loaded increment
+    each cartilage's peak stress and strains; their fields lie beside the results as VTU (LPS), the held
+    tibia's bone side unmoved, the peaks those of the fields."""
+    from dataclasses import replace
+
+    from kneemesh_core.fe.results import tibiofemoral_n
+    from kneemesh_core.fe.run import POSE_DIR, deck_load, run_folder, simulate, simulation_entry
+    from kneemesh_core.tissues import CARTILAGES
+
+    out, _ = knee
+    load = replace(deck_load(out / "fe"), cartilage="deformable")
+    r = simulate(out, smoke=True, load=load)
+    folder = out / run_folder(True, None, load)
+    assert folder.name.endswith("_deformable") and r["completed"], r["reason"]
+    steps = (folder / "knee_ccx.inp").read_text().split("*STEP")[1:]
+    meta = json.loads((folder / "model.json").read_text())
+    assert len(steps) == 3 and "*BOUNDARY, AMPLITUDE=RAMP" in steps[0] and "*BOUNDARY, OP=NEW" in steps[1]
+    prescribed = steps[0].split("*BOUNDARY, AMPLITUDE=RAMP\n")[1].split("*")[0].split()
+    assert f"{meta['ref']['patella']}," in prescribed and f"{meta['rot']['patella']}," in prescribed
+    assert (folder / POSE_DIR / "knee_ccx.dat").exists() and meta["loaded_at"] == 2.0
+    on = loaded(r["increments"])
+    assert on[0]["time"] == pytest.approx(2.0) and on[-1]["flexion_deg"] == pytest.approx(15.0, abs=1e-3)
+    for inc in on:
+        assert inc["balance_error"] < MAX_BALANCE_ERROR and tibiofemoral_n(inc) > 0.8 * load.joint_load_n, inc
+        assert set(inc["cartilage"]) == set(CARTILAGES), inc
+        for peaks in inc["cartilage"].values():
+            assert 0 < peaks["peak_von_mises_mpa"] < 50 and 0 < peaks["peak_compressive_strain"] < 0.7, peaks
+    entry = simulation_entry(r, "smoke", run_folder(True, None, load))
+    assert {f"{folder.relative_to(out)}/cartilage_{t}.vtu" for t in CARTILAGES} <= set(entry["files"])
+    plate = pv.read(folder / "cartilage_medial_tibial_cartilage.vtu")
+    mesh = pv.read(out / "meshes" / "medial_tibial_cartilage.vtu")
+    assert plate.n_cells == mesh.n_cells
+    np.testing.assert_allclose(np.sort(plate.points, axis=0), np.sort(np.asarray(mesh.points), axis=0), atol=1e-3)
+    k = len(on) - 1
+    assert plate.field_data["flexion_deg"][k] == pytest.approx(15.0, abs=1e-3)
+    bone_side = np.asarray(mesh.point_data["bone_side"], bool)
+    from scipy.spatial import cKDTree
+
+    _, order = cKDTree(np.asarray(plate.points)).query(np.asarray(mesh.points)[bone_side])
+    assert np.abs(plate.point_data[f"displacement_mm_{k}"][order]).max() < 1e-6  # the tibia is held
+    assert np.abs(plate.point_data[f"displacement_mm_{k}"]).max() > 0.05  # its articular side is pressed
+    assert plate.point_data[f"von_mises_mpa_{k}"].max() == pytest.approx(
+        on[-1]["cartilage"]["medial_tibial_cartilage"]["peak_von_mises_mpa"], abs=1e-3)
+
+
+def test_a_cartilage_mesh_with_an_inverted_element_is_refused_for_the_deformable_model_with_its_reason():
+    """Deformable cartilage needs solid elements that cannot invert: a mesh with an inverted element (or one
+    below the usable scaled Jacobian) is refused with the tissue and the figures, and the rigid model is named
+    as the way to run the knee; a sound mesh passes."""
+    from kneemesh_core.fe.model import build, unfit_to_deform
+
+    nodes, hexes, _, _ = _block(2, 0.0, 0, 0)
+    points = np.array([nodes[i] for i in range(len(nodes))], float)
+    cells = np.array(list(hexes.values()), int)
+    sound = pv.UnstructuredGrid({pv.CellType.HEXAHEDRON: cells}, points)
+    assert unfit_to_deform({"medial_tibial_cartilage": sound}) == []
+    bad = points.copy()
+    bad[cells[0][0]] = bad[cells[0][6]] + 0.2  # the block's corner, the first element's alone, pushed through it
+    reasons = unfit_to_deform({"medial_tibial_cartilage": pv.UnstructuredGrid({pv.CellType.HEXAHEDRON: cells}, bad)})
+    assert len(reasons) == 1 and reasons[0].startswith("medial_tibial_cartilage has 1 inverted"), reasons
+    with pytest.raises(KneeMeshError) as err:
+        build({}, {"medial_tibial_cartilage": pv.UnstructuredGrid({pv.CellType.HEXAHEDRON: cells}, bad)}, {},
+              LoadCase(cartilage="deformable"))
+    assert err.value.code == "deformable_refused" and "--fe-cartilage rigid" in err.value.message

@@ -110,10 +110,12 @@ def simulate(
     joint_load: Optional[float] = job_option("joint_load", "--joint-load"),
     medial_offset: Optional[float] = job_option("medial_offset", "--medial-offset"),
     quadriceps: Optional[float] = job_option("quadriceps", "--quadriceps"),
+    fe_cartilage: Optional[str] = job_option("fe_cartilage", "--fe-cartilage"),
 ):
     """Run CalculiX on a job's decks (fe/knee_ccx.inp): contact forces, areas and pressures over flexion
-    in fe/results.json and fe/contact.png (fe/smoke/ for --smoke); another load, medial offset or quadriceps
-    force than the decks' runs a model of its own in its own folder (fe/smoke_1500N_300N_10mm_rigid/, say)."""
+    in fe/results.json and fe/contact.png (fe/smoke/ for --smoke); another load, medial offset, quadriceps
+    force or cartilage than the decks' runs a model of its own in its own folder (fe/smoke_1500N_300N_10mm_rigid/,
+    say).  Deformable cartilage adds its stress and strain (cartilage_<tissue>.vtu) and takes minutes."""
     from dataclasses import replace
 
     from kneemesh_core.fe.run import (FE_DIR, another_model, deck_load, run_folder, simulate as run_simulation,
@@ -122,10 +124,11 @@ def simulate(
     with clear_errors():
         decks = deck_load(job_dir / FE_DIR)
         load = None
-        asked = {"joint_load_n": joint_load, "medial_offset_mm": medial_offset, "quadriceps_n": quadriceps}
+        asked = {"joint_load_n": joint_load, "medial_offset_mm": medial_offset, "quadriceps_n": quadriceps,
+                 "cartilage": fe_cartilage}
         if any(v is not None for v in asked.values()):
-            request = JobRequest.build(joint_load=joint_load, medial_offset=medial_offset,
-                                       quadriceps=quadriceps)  # the bounds of a job's options
+            request = JobRequest.build(joint_load=joint_load, medial_offset=medial_offset, quadriceps=quadriceps,
+                                       fe_cartilage=fe_cartilage)  # the bounds of a job's options
             load = replace(decks or request.job_options().load, **{k: v for k, v in asked.items() if v is not None})
         r = run_simulation(job_dir, flexion_deg=to, smoke=smoke, timeout_s=timeout, load=load)
     entry = simulation_entry(r, "smoke" if smoke else "flexion", run_folder(smoke, to, load if another_model(decks, load) else None))

@@ -13,7 +13,8 @@ import numpy as np
 from kneemesh_core import __version__
 from kneemesh_core.fe import inp
 from kneemesh_core.fe.model import Model
-from kneemesh_core.fe.physics import FIXED_BODY, FLEXION, MOVING_BODIES
+from kneemesh_core.fe.physics import (DEFORMABLE_FIRST_INCREMENT_DEG, DEFORMABLE_MAX_INCREMENT_DEG, FIXED_BODY, FLEXION,
+                                      MOVING_BODIES)
 
 #: ccx's equilibrium check: residual forces below 0.5 % of a reference force of 100 N (0.5 N, on a
 #: joint load of hundreds to thousands of N).  ccx's default reference is the average force over
@@ -37,17 +38,34 @@ def deformable_nodes(m: Model) -> np.ndarray:
     return np.unique(np.concatenate(parts)) if parts else np.zeros(0, int)
 
 
-def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str) -> str:
+#: A start pose: per moving body, its reference node's displacement (3,), mm, and its ROT node's rotation
+#: (3,), rad, from the seated pose of the deck (:func:`kneemesh_core.fe.run.rigid_start_pose`).
+StartPose = dict[str, tuple[np.ndarray, np.ndarray]]
+
+
+def loaded_at(start_pose: StartPose | None) -> float:
+    """The total time (ccx's) from which a run carries its loads with its bodies free: the end of the
+    seating step, or with a start pose the end of the step that releases the bodies there."""
+    return 1.0 if start_pose is None else 2.0
+
+
+def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str, start_pose: StartPose | None = None) -> str:
     """Seat under the joint load and the quadriceps force, then flex the femur ``flexion_deg`` about X,
-    at most ``max_increment_deg`` an increment; ``include`` is the shared model's path."""
+    at most ``max_increment_deg`` an increment (no flexion step at 0); ``include`` is the shared model's path.
+
+    With ``start_pose`` (deformable cartilage) the femur and the patella are first carried there with their
+    rotations, the loads on, while the cartilage deforms under the prescribed poses; the next step releases
+    them.  A deforming model started from the seated pose diverges: its patella, far from the rotational
+    balance of quadriceps, patellar tendon and contact, tilted about a radian in the first iteration."""
     rot = rot_nodes(m)
     flex, step = flexion_deg, max_increment_deg
 
     def dof_of(body: str, kind: str, axis: int) -> tuple[int, int]:
         return (m.ref[body] if kind == "translation" else rot[body]), axis + 1
 
-    w = ["*HEADING", f"KneeMesh {__version__} knee, CalculiX dialect: rigid bodies, {flex:g} deg flexion under "
-         f"{m.load.joint_load_n:g} N ({m.load.medial_offset_mm:g} mm medial)", f"*INCLUDE, INPUT={include}", "*NODE"]
+    w = ["*HEADING", f"KneeMesh {__version__} knee, CalculiX dialect: rigid bones, {m.load.cartilage} cartilage, "
+         f"{flex:g} deg flexion under {m.load.joint_load_n:g} N ({m.load.medial_offset_mm:g} mm medial)",
+         f"*INCLUDE, INPUT={include}", "*NODE"]
     w += [f"{n}, " + ", ".join(f"{c:.6f}" for c in m.nodes[m.ref[b]]) for b, n in rot.items()]
     for b, n in rot.items():
         w.append(f"*RIGID BODY, NSET={b.upper()}_BODY, REF NODE={m.ref[b]}, ROT NODE={n}")
@@ -60,23 +78,43 @@ def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str) -
         outputs += [f"*CONTACT PRINT, SLAVE={slave.upper()}_ARTICULAR, MASTER={master.upper()}_ARTICULAR", "CF"]
     outputs += ["*CONTACT PRINT", "CSTR"]
     solid = deformable_nodes(m)
-    if len(solid):  # the deforming cartilage's fields, to the .frd (not read into the results yet: #48)
+    if len(solid):  # the deforming cartilage's fields, to the .frd (fe/cartilage_fields.py)
         w += inp.set_lines("NSET", CARTILAGE_NODES, solid)
         outputs += [f"*NODE FILE, NSET={CARTILAGE_NODES}", "U", f"*EL FILE, NSET={CARTILAGE_NODES}", "S, E"]
     driven, dof = dof_of(FLEXION[0], FLEXION[1], FLEXION[2])
-    # step 1: the femur, seated at the depth that carries the joint load (model.seat_femur), takes the whole
-    # load and the quadriceps force at once; flexion held at the image pose.  The held body's nodes are held
-    # (a rigid body held still, without ccx's three MPCs a node)
-    w += ["** step 1: settle under the joint load and the quadriceps force from the seated pose",
-          "*STEP, NLGEOM, INC=200", "*STATIC", "1.0, 1.0, 1e-6, 1.0", *CONTROLS, "*BOUNDARY",
-          f"{FIXED_BODY.upper()}_BODY, 1, 3, 0.0", f"{m.ref[FIXED_BODY]}, 1, 3, 0.0", f"{driven}, {dof}, {dof}, 0.0",
-          "*CLOAD, AMPLITUDE=HOLD", *inp.joint_load(m, dof_of), *outputs, "*END STEP"]
-    # step 2: flex the femur about X, the joint load held; whole increments (rounded up, so that
-    # ccx adds no sliver of an increment at the end)
+    held = [f"{FIXED_BODY.upper()}_BODY, 1, 3, 0.0", f"{m.ref[FIXED_BODY]}, 1, 3, 0.0", f"{driven}, {dof}, {dof}, 0.0"]
+    if start_pose is None:
+        # step 1: the femur, seated at the depth that carries the joint load (model.seat_femur), takes the whole
+        # load and the quadriceps force at once; flexion held at the image pose.  The held body's nodes are held
+        # (a rigid body held still, without ccx's three MPCs a node)
+        w += ["** step 1: settle under the joint load and the quadriceps force from the seated pose",
+              "*STEP, NLGEOM, INC=200", "*STATIC", "1.0, 1.0, 1e-6, 1.0", *CONTROLS, "*BOUNDARY", *held,
+              "*CLOAD, AMPLITUDE=HOLD", *inp.joint_load(m, dof_of), *outputs, "*END STEP"]
+    else:
+        carried = [f"{node}, {d}, {d}, {value:.6e}" for b, (u, r) in start_pose.items()
+                   for node, values in ((m.ref[b], u), (rot[b], r))
+                   for d, value in enumerate(values, start=1) if (node, d) != (driven, dof)]
+        w += ["** step 1: carry the femur and the patella to the rigid model's seated equilibrium, the loads on: the",
+              "** cartilage deforms under the prescribed poses",
+              "*STEP, NLGEOM, INC=200", "*STATIC", "1.0, 1.0, 1e-6, 1.0", *CONTROLS, "*BOUNDARY", *held,
+              "*BOUNDARY, AMPLITUDE=RAMP", *carried,
+              "*CLOAD, AMPLITUDE=HOLD", *inp.joint_load(m, dof_of), *outputs, "*END STEP",
+              "** step 2: release them to settle under the loads",
+              "*STEP, NLGEOM, INC=200", "*STATIC", "1.0, 1.0, 1e-6, 1.0", *CONTROLS, "*BOUNDARY, OP=NEW", *held,
+              *outputs, "*END STEP"]
+    if flex <= 0:
+        return "\n".join(w) + "\n"
+    # the flexion step: flex the femur about X, the joint load held; whole increments (rounded up, so that
+    # ccx adds no sliver of an increment at the end); deformable cartilage's first one smaller, ccx growing
+    # the next ones
+    if len(solid):
+        step = min(step, DEFORMABLE_MAX_INCREMENT_DEG)
     n = int(np.ceil(flex / min(step, flex) - 1e-9))
     dt = np.ceil(1e10 / n) / 1e10
-    w += [f"** step 2: flex the femur {flex:g} deg about the flexion axis (X), at most {step:g} deg an increment",
-          "*STEP, NLGEOM, INC=1000", "*STATIC", f"{dt:.10f}, 1.0, 1e-6, {dt:.10f}",
+    first = min(dt, DEFORMABLE_FIRST_INCREMENT_DEG / flex) if len(solid) else dt
+    w += [f"** step {2 if start_pose is None else 3}: flex the femur {flex:g} deg about the flexion axis (X), at most "
+          f"{step:g} deg an increment",
+          "*STEP, NLGEOM, INC=1000", "*STATIC", f"{first:.10f}, 1.0, 1e-6, {dt:.10f}",
           *CONTROLS,
           "*BOUNDARY, AMPLITUDE=RAMP", f"{driven}, {dof}, {dof}, {np.radians(flex):.6f}",
           *outputs, "*END STEP"]

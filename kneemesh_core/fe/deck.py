@@ -74,7 +74,7 @@ def shared(m: Model) -> str:
         bundles.setdefault(s.bundle, []).append(f"LIG_{s.name}")
     for bundle, names in bundles.items():
         w += [f"*ELSET, ELSET=BUNDLE_{bundle}", *(", ".join(names[k:k + PER_LINE]) for k in range(0, len(names), PER_LINE))]
-    w += ["*MATERIAL, NAME=CARTILAGE", *_cartilage_law(lc.cartilage), "*DENSITY", f"{CARTILAGE_DENSITY_T_MM3!r}"]
+    w += ["*MATERIAL, NAME=CARTILAGE", *cartilage_law(lc.cartilage), "*DENSITY", f"{CARTILAGE_DENSITY_T_MM3!r}"]
     for part in m.parts.values():
         w.append(f"*SOLID SECTION, ELSET={part.name.upper()}, MATERIAL=CARTILAGE")
     w.append(f"** ligaments: Blankevoort 1991 (e = L/L0 - 1, e_t = {TRANSITION_STRAIN:g}), force (N) against elongation from the "
@@ -107,7 +107,7 @@ def shared(m: Model) -> str:
     return "\n".join(w) + "\n"
 
 
-def _cartilage_law(cartilage: str) -> list[str]:
+def cartilage_law(cartilage: str) -> list[str]:
     """The cartilage material's lines: linear elastic where it is rigid (the constants behind the contact
     law), neo-Hookean with the same small-strain constants where it deforms (:func:`neo_hooke`)."""
     if cartilage == "rigid":
@@ -128,11 +128,16 @@ def joint_load_line(m: Model) -> dict:
             "adduction_moment_nm": round(abs(float(inp.load_moment(m)[1])) / 1000.0, 3)}
 
 
-def meta(m: Model, flexion_deg: float) -> dict:
-    """What reading the results needs: node and element ids, fibres, loads (``model.json``)."""
+def meta(m: Model, flexion_deg: float, start_pose: calculix.StartPose | None = None) -> dict:
+    """What reading the results needs: node and element ids, fibres, loads, when the loads are on with the
+    bodies free (``loaded_at``, ccx's total time) and the deforming cartilages' element ranges (``model.json``)."""
     femur_nodes = set(m.body_nodes["femur"])
     return {
-        "frame": m.frame, "side": m.side, "joint_load_n": m.load.joint_load_n,
+        "frame": m.frame, "side": m.side, "joint_load_n": m.load.joint_load_n, "loaded_at": calculix.loaded_at(start_pose),
+        "start_pose": None if start_pose is None else {b: {"translation_mm": np.round(u, 6).tolist(),
+                                                           "rotation_rad": np.round(r, 8).tolist()}
+                                                       for b, (u, r) in start_pose.items()},
+        "deformable_elements": {p.name: [int(p.elements[0]), int(p.elements[-1])] for p in m.parts.values() if p.deformable},
         "joint_load_direction": (-m.tibial_axis).round(6).tolist(), "quadriceps_n": m.load.quadriceps_n,
         "joint_load": joint_load_line(m),
         "flexion_deg": flexion_deg, "cartilage": m.load.cartilage, "contact_k": m.contact_k, "seating": m.seating,
@@ -164,15 +169,16 @@ def _slave_surface(m: Model, tissue: str) -> dict:
 
 
 def write(m: Model, folder: Path, flexion_deg: float | None = None, max_increment_deg: float | None = None,
-          include: str | None = None) -> list[Path]:
+          include: str | None = None, start_pose: calculix.StartPose | None = None) -> list[Path]:
     """Write the decks into ``folder``; with ``include`` (the path of an existing shared model, from
     ``folder``) only the CalculiX wrapper and ``model.json``, for a run of another flexion beside the
-    job's decks.  Returns their paths."""
+    job's decks; ``start_pose`` where the CalculiX run starts from (:func:`calculix.deck`).  Returns their
+    paths."""
     folder.mkdir(parents=True, exist_ok=True)
     flex = m.load.flexion_deg if flexion_deg is None else flexion_deg
     step = m.load.max_increment_deg if max_increment_deg is None else max_increment_deg
-    files = {CCX_FILE: calculix.deck(m, flex, step, include or MODEL_FILE),
-             META_FILE: json.dumps(meta(m, flex), indent=1)}
+    files = {CCX_FILE: calculix.deck(m, flex, step, include or MODEL_FILE, start_pose),
+             META_FILE: json.dumps(meta(m, flex, start_pose), indent=1)}
     if include is None:
         files = {MODEL_FILE: shared(m), **files, ABAQUS_FILE: abaqus.deck(m, MODEL_FILE)}
     for name, text in files.items():

@@ -30,8 +30,10 @@ import pyvista as pv
 from kneemesh_core.fe.contact_skin import articular_surface, skin
 from kneemesh_core.fe.physics import (CARTILAGE_ELEMENT, QUADRICEPS_ORIGIN_MM, QUADRICEPS_POLE_MM, LoadCase, contact_stiffness,
                                       penalty_stiffness)
+from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.geometry import RAY_BACKOFF_MM, quad_node_areas, ray_distances, triangle_node_areas
-from kneemesh_core.hexmesh.quality import articular_quads
+from kneemesh_core.hexmesh.quality import articular_quads, hex_quality, summary
+from kneemesh_core.hexmesh.targets import USABLE_MIN_SCALED_JACOBIAN
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES
 
 #: The contact pairs: name -> (slave cartilage, master cartilage).
@@ -153,6 +155,11 @@ def build(bones: dict[str, pv.PolyData], cartilages: dict[str, pv.UnstructuredGr
     fibres (``attachments.json``), under ``load``.  Without the patella or its cartilage
     (:data:`PATELLOFEMORAL`) the model is tibiofemoral: no patella, patellofemoral contact, quadriceps or
     prefemoral sheet, and the fibres that end on the patella are left out."""
+    if load.cartilage == "deformable":
+        refused = unfit_to_deform(cartilages)
+        if refused:
+            raise KneeMeshError("deformable_refused", "deformable cartilage needs solid elements that cannot invert: "
+                                + "; ".join(refused) + ". The knee runs with rigid cartilage (--fe-cartilage rigid).")
     patellofemoral = all(t in bones or t in cartilages for t in PATELLOFEMORAL)
     if not patellofemoral:
         bones = {b: v for b, v in bones.items() if b not in PATELLOFEMORAL}
@@ -202,6 +209,20 @@ def build(bones: dict[str, pv.PolyData], cartilages: dict[str, pv.UnstructuredGr
     if load.menisci:
         add_menisci(m, load.flexion_deg)
     return m
+
+
+def unfit_to_deform(cartilages: dict[str, pv.UnstructuredGrid]) -> list[str]:
+    """Why cartilage hex meshes cannot deform as solids, one reason per mesh: an element inverted or
+    collapsed, or one below the usable scaled Jacobian (:data:`~kneemesh_core.hexmesh.targets.USABLE_MIN_SCALED_JACOBIAN`,
+    the floor every shipped mesh keeps; the blended edge's elements below the gate's 0.5 deform well enough);
+    empty when every mesh is fit."""
+    out = []
+    for tissue, grid in cartilages.items():
+        s = summary(hex_quality(np.asarray(grid.points), np.asarray(grid.cells_dict[pv.CellType.HEXAHEDRON])))
+        if s["inverted"] or s["collapsed"] or s["min_scaled_jacobian"] < USABLE_MIN_SCALED_JACOBIAN:
+            out.append(f"{tissue} has {s['inverted']} inverted and {s['collapsed']} collapsed elements, the worst at a "
+                       f"scaled Jacobian of {s['min_scaled_jacobian']:g} (at least {USABLE_MIN_SCALED_JACOBIAN:g} needed)")
+    return out
 
 
 def _add_bones(m: Model, points: dict[str, np.ndarray], triangles: dict[str, np.ndarray]) -> None:
@@ -420,18 +441,12 @@ def seat_femur(m: Model) -> dict:
 
 def seat_patella(m: Model) -> dict:
     """Seat the patella along its anterior axis until it just touches the femoral cartilage or the
-    prefemoral sheet (:func:`add_prefemoral`), whichever it meets first; deformable cartilage on by the
-    depth at which the patellofemoral layers carry the quadriceps force (:func:`preload_depth`).  From a
-    mere touch the solver's first iteration moves the patella freely (no contact stiffness yet): a rigid
-    skin takes the overlap that follows and recovers, a deforming layer is driven through the trochlea's and
-    the run diverges.  Returns its gaps to them, measured after the femur was seated, and the shift."""
+    prefemoral sheet (:func:`add_prefemoral`), whichever it meets first.  Returns its gaps to them, measured
+    after the femur was seated, and the shift."""
     toward = -m.patella_anterior  # the patella's articular side faces posterior, towards the trochlea
     pf = np.fmin.reduce([gaps(m, "patellar_cartilage", master, toward)
                          for master in ("femoral_cartilage", "prefemoral") if master in m.parts])
     shift = float(np.nanmin(pf)) if np.isfinite(pf).any() else 0.0
-    if m.load.cartilage == "deformable":
-        shift += preload_depth([pf - shift], [_node_areas(m, "patellar_cartilage")], [layers_k(m, "patellofemoral")],
-                               m.load.quadriceps_n)
     _move(m, "patella", shift * toward)
     return {"gaps": pf, "shift_mm": shift}
 

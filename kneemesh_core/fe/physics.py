@@ -137,6 +137,12 @@ class LoadCase:
     prefemoral: bool = True  # the patella's rest above the trochlea (fe/prefemoral.py)
 
 
+#: Deformable cartilage's first and largest flexion increments, deg; ccx grows the increments in between.
+#: From the sample's seated equilibrium a first increment of 7.5 deg diverged (the femur's residual moment
+#: 16 N m, then 2e5 N m), one of 1.5 deg converged in 10 Newton iterations and the next ones in 6-7, up to
+#: 3.4 deg; one of 5.1 deg failed twice (8 and 5 iterations, 5 minutes) before ccx cut it back.
+DEFORMABLE_FIRST_INCREMENT_DEG, DEFORMABLE_MAX_INCREMENT_DEG = 1.5, 3.5
+
 #: The smoke run: flexion and largest increment, deg (two increments: the sample's run took 53 s of CPU
 #: in three of 5 deg, 43 s in two, with the same contact at 15 deg within 3 % of force).
 SMOKE_FLEXION_DEG, SMOKE_INCREMENT_DEG = 15.0, 7.5

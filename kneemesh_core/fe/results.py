@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kneemesh_core.fe.cartilage_fields import read_frd, summaries, write_fields
 from kneemesh_core.fe.model import deck_to_lps
 from kneemesh_core.fe.physics import (MAX_BALANCE_ERROR, MAX_PLATE_PEAK_MPA, MAX_PRELOAD_STRAIN, MIN_PLATE_SHARE,
                                       MIN_PLATES_AREA_MM2, ligament_force)
@@ -123,14 +124,16 @@ def located(contact: dict, frame: dict, pair: str) -> dict:
     return out
 
 
-#: The step time at which the seating step ends with the whole joint load on (ccx's total time): the
-#: increments from there on are loaded; those before are ccx's cut-back seating increments, not trusted.
+#: The total time (ccx's) at which the seating step ends with the whole joint load on, where ``model.json``
+#: does not say (``loaded_at``: decks before deformable cartilage's start pose): the increments from there on
+#: are loaded; those before are ccx's cut-back seating increments, not trusted.
 LOADED_AT = 1.0
 
 
 def loaded(increments: list[dict]) -> list[dict]:
-    """The increments of a run with the whole joint load on (``time`` >= :data:`LOADED_AT`)."""
-    return [r for r in increments if r["time"] >= LOADED_AT]
+    """The increments of a run with the whole joint load on and the bodies free (``loaded``; results before
+    it was written: ``time`` >= :data:`LOADED_AT`)."""
+    return [r for r in increments if r.get("loaded", r["time"] >= LOADED_AT)]
 
 
 def summarise(dat: dict, meta: dict) -> list[dict]:
@@ -145,7 +148,7 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
     image = meta["frame"].get("image_flexion_deg")
     for t in sorted(dat["contact"]):
         flexion = round(float(np.degrees(rots[t][meta["rot"]["femur"]][0])), 3) if t in rots else None
-        row: dict = {"time": t, "flexion_deg": flexion,
+        row: dict = {"time": t, "loaded": t >= meta.get("loaded_at", LOADED_AT), "flexion_deg": flexion,
                      "anatomical_flexion_deg": None if flexion is None or image is None else round(image + flexion, 3)}
         femur_force = meta["joint_load_n"] * np.asarray(meta["joint_load_direction"])  # whole from step 1 on
         pressures = dat["stress"].get(t, [])
@@ -250,7 +253,7 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
     dat = parse_dat(dat_path, stopped=not run.completed) if dat_path.exists() else None
     increments = summarise(dat, meta) if dat else []
     invalid = first_invalid(increments)
-    cut = next((i for i, r in enumerate(increments) if r["time"] >= LOADED_AT and not physical(r)), len(increments))
+    cut = next((i for i, r in enumerate(increments) if r["loaded"] and not physical(r)), len(increments))
     trusted = increments[:cut]
     reached = max((r["flexion_deg"] or 0.0 for r in trusted), default=0.0)
     completed = run.completed and invalid is None
@@ -261,6 +264,7 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
                   f"({seat['preload_strain']:.0%} of the tibiofemoral layers' thickness) before they carried the joint load: "
                   "they meet over a small area, where bone would touch bone through denuded or unmeshed cartilage, "
                   "which the model leaves out")
+    fields = _cartilage(folder, meta, increments, loaded(trusted)) if increments else []
     off_physiology = physiology(trusted, meta["joint_load_n"])
     result = {"solver": run.version, "completed": completed, "reason": reason, "seconds": round(run.seconds, 2),
               "physiological": not off_physiology, "physiology_reasons": off_physiology,
@@ -269,11 +273,33 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
               "target_flexion_deg": meta["flexion_deg"], "reached_flexion_deg": round(reached, 3),
               "contact_stiffness_n_mm3": meta["contact_k"], "seating": meta["seating"],
               "pressure_maps": write_maps(folder, meta, dat["stress"], loaded(trusted)) if dat else [],
-              "increments": increments}
+              "cartilage_fields": fields, "increments": increments}
     atomic_write_json(folder / RESULTS_FILE, result, indent=1)
     if increments:
         plot(result, folder / CONTACT_FIGURE)
     return result
+
+
+def _cartilage(folder: Path, meta: dict, increments: list[dict], trusted: list[dict]) -> list[str]:
+    """Deformable cartilage's stress and strain (:mod:`.cartilage_fields`) from the run's ``.frd``: each
+    increment's ``cartilage`` peaks (in place) and the fields of the ``trusted`` loaded increments as
+    ``cartilage_<tissue>.vtu``; returns the files written (none where the cartilage is rigid)."""
+    parts, frd_path = meta.get("deformable_elements") or {}, folder / "knee_ccx.frd"
+    if not parts or not frd_path.exists():
+        return []
+    frd = read_frd(frd_path)
+    times = np.array([s["time"] for s in frd["steps"]], float)
+
+    def frd_time(t: float) -> float | None:  # the .dat prints times to 7 digits, the .frd to 10
+        near = np.flatnonzero(np.abs(times - t) < 1e-5)
+        return float(times[near[0]]) if len(near) else None
+
+    peaks = summaries(frd, parts)
+    for row in increments:
+        if frd_time(row["time"]) in peaks:
+            row["cartilage"] = peaks[frd_time(row["time"])]
+    return write_fields(folder, frd, parts, [{**r, "time": frd_time(r["time"])} for r in trusted],
+                        lambda p: deck_to_lps(meta["frame"], p))
 
 
 def plot(result: dict, path: Path) -> None:
@@ -284,7 +310,8 @@ def plot(result: dict, path: Path) -> None:
 
     inc = [r for r in loaded(result["increments"]) if r["flexion_deg"] is not None]
     x = [r["flexion_deg"] for r in inc]
-    fig, axs = plt.subplots(2, 2, figsize=(10, 7), dpi=80)
+    tissues = sorted({t for r in inc for t in r.get("cartilage", {})})  # deformable cartilage's own panels
+    fig, axs = plt.subplots(3 if tissues else 2, 2, figsize=(10, 10.5 if tissues else 7), dpi=80)
     for name, style in zip(CONTACTS, ("-o", "-s", ":o", ":s", "-^")):
         if not inc or name not in inc[0]:
             continue
@@ -296,6 +323,17 @@ def plot(result: dict, path: Path) -> None:
     for bundle in sorted({b for r in inc for b in r["ligaments_n"]}):
         axs[1, 1].plot(x, [r["ligaments_n"].get(bundle, 0.0) for r in inc], label=bundle)
     axs[1, 1].set_ylabel("ligament force, N")
+    for tissue in tissues:
+        at = [r for r in inc if tissue in r.get("cartilage", {})]
+        peaks = [r["cartilage"][tissue] for r in at]
+        axs[2, 0].plot([r["flexion_deg"] for r in at], [p["peak_von_mises_mpa"] for p in peaks], "-o", ms=3, label=tissue)
+        axs[2, 1].plot([r["flexion_deg"] for r in at], [p["peak_compressive_strain"] for p in peaks], "-o", ms=3, label=tissue)
+        axs[2, 1].plot([r["flexion_deg"] for r in at], [p["peak_shear_strain"] for p in peaks], "--",
+                       color=axs[2, 1].lines[-1].get_color())
+    if tissues:
+        axs[2, 0].set_ylabel("cartilage: peak von Mises stress, MPa")
+        axs[2, 1].set_ylabel("cartilage: peak compressive (solid)\nand shear (dashed) strain")
+        axs[2, 0].legend(fontsize=7)
     axs[0, 0].legend(fontsize=8)
     axs[1, 1].legend(fontsize=6, ncol=2)
     for ax in axs.ravel():

@@ -8,22 +8,29 @@ wrapper over the same shared model to 15 deg in two increments, in ``fe/smoke/``
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pyvista as pv
 
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.fe import deck
+from kneemesh_core.fe.calculix import StartPose, rot_nodes
 from kneemesh_core.fe.model import PATELLOFEMORAL, Model, build
 from kneemesh_core.fe.physics import SMOKE_FLEXION_DEG, SMOKE_INCREMENT_DEG, LoadCase
-from kneemesh_core.fe.results import CONTACT_FIGURE, CONTACTS, RESULTS_FILE, write_results
-from kneemesh_core.fe.simulate import run_ccx
+from kneemesh_core.fe.results import CONTACT_FIGURE, CONTACTS, RESULTS_FILE, parse_dat, write_results
+from kneemesh_core.fe.simulate import DEFORMABLE_STALL_CPU_S, STALL_CPU_S, run_ccx
 from kneemesh_core.tissues import BONES, CARTILAGES
 
 #: The job folder's meshes (the job's layout, kneemesh_core.job.outputs, which imports this package).
 MESHES_DIR = "meshes"
 
 FE_DIR, SMOKE_DIR = "fe", "smoke"
+#: Where, beside a deformable model's CalculiX deck, the rigid model's seating that gives its start pose ran.
+POSE_DIR = "rigid_pose"
+#: How long that seating may take, s (the sample's: 3 s).
+POSE_TIMEOUT_S = 300.0
 #: Where a job's results lie, relative to the job folder: the full flexion first, then the smoke run.
 RESULT_FILES = (f"{FE_DIR}/{RESULTS_FILE}", f"{FE_DIR}/{SMOKE_DIR}/{RESULTS_FILE}")
 
@@ -55,11 +62,40 @@ def tibiofemoral_reasons(m: Model) -> list[str]:
             "patellofemoral joint, quadriceps or patellar ligaments"]
 
 
+def rigid_start_pose(out_dir: Path, m: Model, folder: Path) -> StartPose:
+    """Where a deformable model ``m`` of a job starts its CalculiX run (:func:`kneemesh_core.fe.calculix.deck`):
+    the seated equilibrium of the same knee with rigid cartilage (its elastic-foundation contact stands for
+    the same layers), found by running that model's seating in ``folder`` (a few seconds).  Returned as each
+    moving body's displacement and rotation from ``m``'s own seated pose; ``deformable_unposed`` where the
+    rigid seating does not converge."""
+    rigid = read_model(out_dir, replace(m.load, cartilage="rigid"))
+    deck.write(rigid, folder, flexion_deg=0.0)
+    run = run_ccx(folder, Path(deck.CCX_FILE).stem, POSE_TIMEOUT_S)
+    dat = parse_dat(folder / f"{Path(deck.CCX_FILE).stem}.dat") if run.completed else None
+    refs, rots = ((dat["nodes"].get(("displacements", s), {}).get(1.0) for s in ("REFS", "ROTS")) if dat else (None, None))
+    if refs is None or rots is None:
+        raise KneeMeshError("deformable_unposed", "deformable cartilage starts from the rigid model's seated equilibrium, "
+                            f"and the rigid model's seating did not converge ({run.reason or 'no seated pose written'}; "
+                            f"{folder}): the knee can be run with rigid cartilage only.")
+    return {b: (rigid.nodes[rigid.ref[b]] + refs[rigid.ref[b]] - m.nodes[m.ref[b]], rots[n])
+            for b, n in rot_nodes(rigid).items()}
+
+
+def saved_pose(folder: Path) -> StartPose | None:
+    """The start pose a deck folder's CalculiX deck was written with (its ``model.json``), None without one."""
+    pose = json.loads((Path(folder) / deck.META_FILE).read_text()).get("start_pose")
+    return None if not pose else {b: (np.asarray(v["translation_mm"], float), np.asarray(v["rotation_rad"], float))
+                                  for b, v in pose.items()}
+
+
 def write_decks(out_dir: Path, load: LoadCase = LoadCase()) -> dict:
     """The decks of a meshed job in ``out_dir/fe``; returns what the report says of them (``review`` for a
-    tibiofemoral model, with the reason)."""
+    tibiofemoral model, with the reason).  Deformable cartilage's CalculiX deck starts from the rigid model's
+    seated pose (:func:`rigid_start_pose`)."""
     m = read_model(out_dir, load)
-    files = deck.write(m, Path(out_dir) / FE_DIR)
+    fe = Path(out_dir) / FE_DIR
+    pose = rigid_start_pose(out_dir, m, fe / POSE_DIR) if load.cartilage == "deformable" else None
+    files = deck.write(m, fe, start_pose=pose)
     reasons = tibiofemoral_reasons(m)
     return {"status": "review" if reasons else "ok", "reasons": reasons, "model": "tibiofemoral" if reasons else "knee",
             "files": [f"{FE_DIR}/{f.name}" for f in files], "nodes": len(m.nodes),
@@ -112,24 +148,28 @@ def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = Fals
     cartilage than the decks' gets a shared model of its own in its run folder (:func:`run_folder`).  Returns
     the results."""
     fe = Path(out_dir) / FE_DIR
-    m, decks = None, deck_load(fe)
+    decks = deck_load(fe)
     if decks is None:
-        m = read_model(out_dir, load or LoadCase())
-        deck.write(m, fe)
-        decks = m.load
+        write_decks(out_dir, load or LoadCase())
+        decks = deck_load(fe)
     load = load or decks
     own = another_model(decks, load)
     folder = Path(out_dir) / run_folder(smoke, flexion_deg, load if own else None)
     if folder != fe:
         flex, step = ((SMOKE_FLEXION_DEG, SMOKE_INCREMENT_DEG) if smoke else
                       (load.flexion_deg if flexion_deg is None else flexion_deg, load.max_increment_deg))
-        model = m if m is not None and not own else read_model(out_dir, load)
-        deck.write(model, folder, flex, step, include=None if own else f"../{deck.MODEL_FILE}")
+        model = read_model(out_dir, load)
+        pose = None
+        if load.cartilage == "deformable":  # over the job's own model, the pose its decks start from
+            pose = (None if own else saved_pose(fe)) or rigid_start_pose(out_dir, model, folder / POSE_DIR)
+        deck.write(model, folder, flex, step, include=None if own else f"../{deck.MODEL_FILE}", start_pose=pose)
     meta_file = folder / deck.META_FILE
     if not meta_file.exists():
         raise KneeMeshError("deck_missing", f"{meta_file} is missing: write the decks again (kneemesh mesh).")
-    run = run_ccx(folder, Path(deck.CCX_FILE).stem, timeout_s)
-    return write_results(folder, run, json.loads(meta_file.read_text()), folder / "knee_ccx.dat")
+    meta = json.loads(meta_file.read_text())
+    run = run_ccx(folder, Path(deck.CCX_FILE).stem, timeout_s,
+                  DEFORMABLE_STALL_CPU_S if meta["cartilage"] == "deformable" else STALL_CPU_S)
+    return write_results(folder, run, meta, folder / "knee_ccx.dat")
 
 
 def simulation_entry(results: dict, kind: str, folder: str) -> dict:
@@ -147,4 +187,5 @@ def simulation_entry(results: dict, kind: str, folder: str) -> dict:
             "solver_seconds": r["seconds"], "reached_flexion_deg": r["reached_flexion_deg"],
             "target_flexion_deg": r["target_flexion_deg"],
             "final": {k: v for k, v in last.items() if k in ("anatomical_flexion_deg", "balance_error", *CONTACTS)},
-            "files": [f"{folder}/{f}" for f in (RESULTS_FILE, CONTACT_FIGURE, *results.get("pressure_maps", []))]}
+            "files": [f"{folder}/{f}" for f in (RESULTS_FILE, CONTACT_FIGURE, *results.get("pressure_maps", []),
+                                                 *results.get("cartilage_fields", []))]}

@@ -54,6 +54,10 @@ CCX_THREADS = max(1, min(2, os.cpu_count() or 1))
 #: others waits without progress and is not stalled (a wall-clock limit stopped a healthy run at 0 deg
 #: while four processes shared the two cores).
 STALL_CPU_S = 600.0
+#: The same for a model with deformable cartilage, whose Newton iterations cost 15-25 CPU seconds on the
+#: sample (rigid: 1-3): its first attempt at a 5 deg flexion increment failed after 8 iterations and the
+#: second after 5, 600 s in all, and the run was stopped before ccx's next cutback could converge.
+DEFORMABLE_STALL_CPU_S = 3000.0
 #: How often the .sta file is read while ccx runs, s.
 POLL_S = 1.0
 

@@ -104,7 +104,8 @@ class JobRequest(BaseModel):
     flexion: float = Field(90.0, ge=1.0, le=120.0, allow_inf_nan=False,
                            description="The flexion a full run reaches from the image pose, deg.")
     fe_cartilage: Literal["rigid", "deformable"] = Field(
-        "rigid", description="Cartilage in the decks: rigid (the paper's choice; contact stiffness from its layers) or deformable.")
+        "rigid", description="Cartilage in the decks: rigid (the paper's choice; contact stiffness from its layers; "
+                 "seconds a run) or deformable (solid neo-Hookean hexahedra; stress and strain reported; minutes a run).")
 
     @classmethod
     def build(cls, **given) -> "JobRequest":
