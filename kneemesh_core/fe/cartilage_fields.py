@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-from kneemesh_core.io.files import atomic_path
+from kneemesh_core.fe.pressure_map import save_series
 
 #: The ``.frd`` result blocks read, by ccx's name.
 FIELDS = ("DISP", "STRESS", "TOSTRAIN")
@@ -172,11 +172,7 @@ def write_fields(folder: Path, frd: dict, parts: dict[str, list[int]], increment
                 e = principal(np.nan_to_num(_on(blocks["TOSTRAIN"], nodes)))
                 grid.point_data[f"min_principal_strain_{k}"] = e[:, 0]
                 grid.point_data[f"max_shear_strain_{k}"] = e[:, 2] - e[:, 0]
-        grid.field_data["step_time"] = np.array([inc["time"] for inc in increments], float)
-        grid.field_data["flexion_deg"] = np.array([np.nan if inc["flexion_deg"] is None else inc["flexion_deg"]
-                                                   for inc in increments], float)
         name = f"cartilage_{tissue}.vtu"
-        with atomic_path(folder / name) as tmp:
-            grid.save(tmp)
+        save_series(grid, increments, folder / name)
         written.append(name)
     return written

@@ -54,11 +54,17 @@ def write_maps(folder: Path, meta: dict, stress: dict, increments: list[dict]) -
         lo, n = int(elements.min()), int(elements.max() - elements.min() + 1)
         for k, inc in enumerate(increments):
             out.cell_data[f"pressure_mpa_{k}"] = element_pressure(stress.get(inc["time"], []), lo, n)[elements - lo]
-        out.field_data["step_time"] = np.array([inc["time"] for inc in increments], float)
-        out.field_data["flexion_deg"] = np.array([np.nan if inc["flexion_deg"] is None else inc["flexion_deg"]
-                                                  for inc in increments], float)
         name = f"pressure_{tissue}.vtu"
-        with atomic_path(folder / name) as tmp:
-            out.save(tmp)
+        save_series(out, increments, folder / name)
         written.append(name)
     return written
+
+
+def save_series(grid: pv.UnstructuredGrid, increments: list[dict], path: Path) -> None:
+    """Write ``grid``, whose arrays end in ``_<k>`` for the k-th of ``increments`` (rows of ``results.json``),
+    with their ``step_time`` and ``flexion_deg`` in field data (NaN where unknown), atomically."""
+    grid.field_data["step_time"] = np.array([inc["time"] for inc in increments], float)
+    grid.field_data["flexion_deg"] = np.array([np.nan if inc["flexion_deg"] is None else inc["flexion_deg"]
+                                               for inc in increments], float)
+    with atomic_path(path) as tmp:
+        grid.save(tmp)
