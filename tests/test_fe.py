@@ -638,6 +638,7 @@ def test_a_deformable_block_pressed_by_a_frictionless_rigid_plate_has_the_analyt
     assert last["blocks"]["DISP"][1][:, 2].min() == pytest.approx(-squeeze, rel=1e-6)
     peaks = summaries(frd, {"block": [1, len(hexes)]})[last["time"]]["block"]
     assert peaks["peak_von_mises_mpa"] == pytest.approx(abs(sigma), rel=1e-3)
+    assert peaks["peak_compressive_stress_mpa"] == pytest.approx(-sigma, rel=1e-3) and sigma < 0
     assert peaks["peak_compressive_strain"] == pytest.approx((1 - stretch ** 2) / 2, rel=1e-3)
     assert peaks["peak_shear_strain"] == pytest.approx((mu ** 2 - stretch ** 2) / 2, rel=1e-3)
 
@@ -650,7 +651,7 @@ def test_a_deformable_smoke_run_of_a_real_knee_balances_and_reports_the_cartilag
     tibia's bone side unmoved, the peaks those of the fields."""
     from dataclasses import replace
 
-    from kneemesh_core.fe.results import tibiofemoral_n
+    from kneemesh_core.fe.results import plate_peak, tibiofemoral_n
     from kneemesh_core.fe.run import POSE_DIR, deck_load, run_folder, simulate, simulation_entry
     from kneemesh_core.tissues import CARTILAGES
 
@@ -672,6 +673,9 @@ def test_a_deformable_smoke_run_of_a_real_knee_balances_and_reports_the_cartilag
         assert set(inc["cartilage"]) == set(CARTILAGES), inc
         for peaks in inc["cartilage"].values():
             assert 0 < peaks["peak_von_mises_mpa"] < 50 and 0 < peaks["peak_compressive_strain"] < 0.7, peaks
+            assert 0 < peaks["peak_compressive_stress_mpa"] < 50, peaks
+        # the plates' physiology reads the tibial cartilage's compression, not the contact's integration points
+        assert plate_peak(inc, "medial") == inc["cartilage"]["medial_tibial_cartilage"]["peak_compressive_stress_mpa"]
     entry = simulation_entry(r, "smoke", run_folder(True, None, load))
     assert {f"{folder.relative_to(out)}/cartilage_{t}.vtu" for t in CARTILAGES} <= set(entry["files"])
     plate = pv.read(folder / "cartilage_medial_tibial_cartilage.vtu")
