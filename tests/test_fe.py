@@ -651,6 +651,8 @@ def test_a_deformable_smoke_run_of_a_real_knee_balances_and_reports_the_cartilag
     tibia's bone side unmoved, the peaks those of the fields."""
     from dataclasses import replace
 
+    from scipy.spatial import cKDTree
+
     from kneemesh_core.fe.results import plate_peak, tibiofemoral_n
     from kneemesh_core.fe.run import POSE_DIR, deck_load, run_folder, simulate, simulation_entry
     from kneemesh_core.tissues import CARTILAGES
@@ -685,8 +687,6 @@ def test_a_deformable_smoke_run_of_a_real_knee_balances_and_reports_the_cartilag
     k = len(on) - 1
     assert plate.field_data["flexion_deg"][k] == pytest.approx(15.0, abs=1e-3)
     bone_side = np.asarray(mesh.point_data["bone_side"], bool)
-    from scipy.spatial import cKDTree
-
     _, order = cKDTree(np.asarray(plate.points)).query(np.asarray(mesh.points)[bone_side])
     assert np.abs(plate.point_data[f"displacement_mm_{k}"][order]).max() < 1e-6  # the tibia is held
     assert np.abs(plate.point_data[f"displacement_mm_{k}"]).max() > 0.05  # its articular side is pressed

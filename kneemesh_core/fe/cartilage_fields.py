@@ -123,17 +123,23 @@ def _on(block: tuple[np.ndarray, np.ndarray], nodes: np.ndarray) -> np.ndarray:
     return out
 
 
+def _part(frd: dict, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+    """A part's hexahedra (E, 8), node ids, and its node ids (sorted), from its element ids ``lo`` to ``hi``."""
+    elements, conn = frd["hexes"]
+    hexes = conn[(elements >= lo) & (elements <= hi)]
+    return hexes, np.unique(hexes)
+
+
 def summaries(frd: dict, parts: dict[str, list[int]]) -> dict[float, dict[str, dict]]:
     """Per result set (total time) and cartilage, the peaks of the module's docstring; ``parts``:
     cartilage -> its first and last element id in the deck."""
-    elements, conn = frd["hexes"]
+    nodes_of = {tissue: _part(frd, lo, hi)[1] for tissue, (lo, hi) in parts.items()}
     out: dict = {}
     for step in frd["steps"]:
         if "STRESS" not in step["blocks"] or "TOSTRAIN" not in step["blocks"]:
             continue
         row = {}
-        for tissue, (lo, hi) in parts.items():
-            nodes = np.unique(conn[(elements >= lo) & (elements <= hi)])
+        for tissue, nodes in nodes_of.items():
             stress, strain = _on(step["blocks"]["STRESS"], nodes), _on(step["blocks"]["TOSTRAIN"], nodes)
             ok = np.isfinite(stress).all(1) & np.isfinite(strain).all(1)
             if not ok.any():
@@ -152,8 +158,8 @@ def write_fields(folder: Path, frd: dict, parts: dict[str, list[int]], increment
     element id): its hexahedra in the undeformed pose the run started from, LPS mm (``to_lps``: deck frame
     points (P, 3) to LPS), and per increment ``k`` of ``increments`` (the loaded ones of ``results.json``)
     the point arrays ``displacement_mm_<k>`` (LPS), ``von_mises_mpa_<k>``, ``min_principal_stress_mpa_<k>``,
-    ``min_principal_strain_<k>`` and
-    ``max_shear_strain_<k>``; field data ``step_time`` and ``flexion_deg``.  Returns the names written."""
+    ``min_principal_strain_<k>`` and ``max_shear_strain_<k>``; field data ``step_time`` and ``flexion_deg``.
+    Returns the names written."""
     written = []
     steps = {s["time"]: s["blocks"] for s in frd["steps"]}
     increments = [inc for inc in increments if inc["time"] in steps]
@@ -161,11 +167,9 @@ def write_fields(folder: Path, frd: dict, parts: dict[str, list[int]], increment
         return written
     node_ids, coords = frd["nodes"]
     order = np.argsort(node_ids)
-    elements, conn = frd["hexes"]
     origin = to_lps(np.zeros((1, 3)))[0]
     for tissue, (lo, hi) in sorted(parts.items()):
-        hexes = conn[(elements >= lo) & (elements <= hi)]
-        nodes = np.unique(hexes)
+        hexes, nodes = _part(frd, lo, hi)
         points = coords[order][np.searchsorted(node_ids[order], nodes)]
         grid = pv.UnstructuredGrid({pv.CellType.HEXAHEDRON: np.searchsorted(nodes, hexes)}, to_lps(points))
         for k, inc in enumerate(increments):
