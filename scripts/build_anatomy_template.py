@@ -121,7 +121,7 @@ def main() -> None:
 
     # the femur template: the sample's femur in Lenhart's femoral frame
     knee = load_knee(SAMPLE)
-    opts = SurfaceOptions(bone_edge_mm=2.0)
+    opts = SurfaceOptions(bone_edge_mm=2.0, articular_edge_mm=2.0)  # uniform, as the template was built
     bones = {b: np.asarray(reconstruct_bone(knee.labels, b, opts)[0].points) for b in ("femur", "tibia", "patella")}
     femur_mesh = reconstruct_bone(knee.labels, "femur", opts)[0]
     axes = coarse_axes(bones["femur"], bones["tibia"], bones["patella"])

@@ -26,6 +26,8 @@ def check_bone(mesh, facts, labels: sitk.Image, tissue: str):
     assert abs(facts["volume_ml"] - facts["label_volume_ml"]) <= 0.03 * facts["label_volume_ml"], facts
     assert facts["surface_distance_mm"]["mean"] <= 0.3 and facts["surface_distance_mm"]["p95"] <= 0.8, facts
     assert 2.6 <= facts["edge_mm"]["mean"] <= 3.4
+    # under its cartilage the shell takes the cartilage's element size (SurfaceOptions.articular_edge_mm)
+    assert facts["articular_edge_mm"] is None or 0.8 <= facts["articular_edge_mm"]["mean"] <= 1.3, facts
     assert mesh.volume > 0  # outward normals: positive enclosed volume
     # physical space: the shell's bounds are those of the label voxels (LPS mm)
     idx = np.argwhere(sitk.GetArrayViewFromImage(labels) == LABEL[tissue])[:, ::-1]
@@ -49,6 +51,28 @@ def test_phantom_bones_meet_targets(phantoms, severity):
     for bone in BONES:
         mesh, facts = reconstruct_bone(labels, bone, SurfaceOptions())
         check_bone(mesh, facts, labels, bone)
+
+
+def test_under_its_cartilage_the_shell_follows_the_label_between_its_vertices():
+    """A facet spans its corners as a chord: 3 mm facets stand off the label's concave corners, where the
+    cartilage rims lie, and a rim then lies inside the shell though it lies on its label.  Under the
+    cartilage the shell's edges are the cartilage's element size, and its facets follow the label."""
+    from scipy.spatial import cKDTree
+
+    from kneemesh_core.surfaces.metrics import distance_to_surface
+    from kneemesh_core.surfaces.tissue import label_surface
+
+    knee = load_knee(real(OAI / "OAI_AKOA_9332151_96m.nii.gz"))
+    raw = label_surface(knee.labels, "tibia")
+    plates = voxel_to_lps(knee.labels, np.argwhere(np.isin(sitk.GetArrayViewFromImage(knee.labels), [
+        LABEL["medial_tibial_cartilage"], LABEL["lateral_tibial_cartilage"]]))[:, ::-1])
+    p99 = {}
+    for fine in (1.0, 3.0):
+        mesh, facts = reconstruct_bone(knee.labels, "tibia", SurfaceOptions(articular_edge_mm=fine))
+        centres = np.asarray(mesh.cell_centers().points)
+        under = cKDTree(plates).query(centres)[0] < 1.0
+        p99[fine] = np.percentile(distance_to_surface(centres[under], raw), 99)
+    assert p99[1.0] <= 0.3 and p99[3.0] >= 0.4, p99
 
 
 def test_mirrored_left_handed_grid_still_gives_outward_normals():

@@ -86,7 +86,7 @@ class JobRequest(BaseModel):
     blend: bool = Field(True, description="Blend the cartilage edge into the bone and fuse it onto the bone.")
     blend_angle: float = Field(45.0, ge=20.0, le=80.0, allow_inf_nan=False,
                                description="Angle at which the blended cartilage edge meets the bone, deg.")
-    bone_edge: float = Field(3.0, ge=0.5, le=10.0, allow_inf_nan=False, description="Target bone triangle edge, mm.")
+    bone_edge: float = Field(3.0, ge=0.5, le=10.0, allow_inf_nan=False, description="Target bone triangle edge away from the cartilage, mm (under it: the element size).")
     stl: bool = Field(False, description="Also write the bone shells as .stl.")
     simulate: Literal["none", "smoke", "full"] = Field(
         "none", description="Run the CalculiX deck: smoke (to 15 deg of flexion) or full (to 90 deg); none: write the decks only.")
@@ -125,6 +125,6 @@ class JobRequest(BaseModel):
             load=LoadCase(joint_load_n=self.joint_load, medial_offset_mm=self.medial_offset, quadriceps_n=self.quadriceps,
                           flexion_deg=self.flexion,
                           cartilage=self.fe_cartilage),
-            surface=SurfaceOptions(bone_edge_mm=self.bone_edge),
+            surface=SurfaceOptions(bone_edge_mm=self.bone_edge, articular_edge_mm=min(self.element_size, self.bone_edge)),
             hex=HexOptions(element_size=self.element_size, layers=self.layers),
             blend=BlendOptions(angle_deg=self.blend_angle) if self.blend else None)

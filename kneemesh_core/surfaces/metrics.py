@@ -10,11 +10,15 @@ from vtkmodules.vtkCommonCore import vtkDoubleArray
 from vtkmodules.vtkFiltersCore import vtkImplicitPolyDataDistance
 
 
-def edges_mm(surf: pv.PolyData) -> np.ndarray:
-    """Lengths of the unique edges of a triangle surface, mm."""
+def unique_edges(surf: pv.PolyData) -> np.ndarray:
+    """The unique edges (E, 2) of a triangle surface, each as its two vertex ids, sorted."""
     f = surf.faces.reshape(-1, 4)[:, 1:]
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    e = np.unique(e, axis=0)
+    return np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+
+
+def edges_mm(surf: pv.PolyData, edges: np.ndarray | None = None) -> np.ndarray:
+    """Lengths of the unique edges of a triangle surface (or of ``edges`` (E, 2) of it), mm."""
+    e = unique_edges(surf) if edges is None else edges
     return np.linalg.norm(surf.points[e[:, 0]] - surf.points[e[:, 1]], axis=1)
 
 
