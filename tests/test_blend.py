@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import pyvista as pv
 
-from conftest import OAI, PYMSKT_RIGHT, real
+from conftest import OAI, PYMSKT_RIGHT, REAL, real
 from kneemesh_core.hexmesh import BlendOptions, HexOptions, blend_cartilage, mesh_cartilage
 from kneemesh_core.hexmesh import targets as T
 from kneemesh_core.hexmesh.conform import conform_bone
@@ -147,9 +147,10 @@ def test_bone_gives_way_where_a_fused_cartilage_stays_inside_it():
     stays inside it after fusion (moving it out would crush its elements). The tibia gives way
     there, keeping its triangles, closed and uncrossed; a cartilage not inside changes nothing."""
     knee = load_knee(real(OAI / "OAI_AKOA_9332151_96m.nii.gz"))
-    tibia = reconstruct_bone(knee.labels, "tibia", SurfaceOptions())[0]
+    # (a shell of 3 mm facets throughout, and no trimming of the rim left in it: what made this case)
+    tibia = reconstruct_bone(knee.labels, "tibia", SurfaceOptions(articular_edge_mm=3.0))[0]
     tissue = "medial_tibial_cartilage"
-    cm = blend_cartilage(mesh_cartilage(knee.labels, tissue, HexOptions()), tibia)
+    cm = blend_cartilage(mesh_cartilage(knee.labels, tissue, HexOptions()), tibia, BlendOptions(trim_rounds=0))
     assert cm.facts["blend"]["bone_penetration_mm"] > 0.5  # the case this is for
     conformed, facts = conform_bone(tibia, {tissue: cm.grid()})
     per = facts["cartilages"][tissue]
@@ -167,3 +168,30 @@ def test_bone_gives_way_where_a_fused_cartilage_stays_inside_it():
     # little left to do a second time (those two nodes: a further quarter millimetre of dent)
     again, facts = conform_bone(conformed, {tissue: cm.grid()})
     assert facts["cartilages"][tissue]["penetration_mm"] <= 0.1 and facts["max_dent_mm"] <= 0.25
+
+
+def test_rim_columns_that_stay_in_the_bone_are_trimmed_and_count_as_uncovered():
+    """A paper's-cohort knee (9003406, baseline): its patellar cartilage thins to nothing along the
+    patella's rim, where the rim's columns run along the bone, and fusion cannot bring 31 of them out
+    of it.  They are trimmed off with their elements (the rim measured again); the rest is blended,
+    nothing is left in the bone, and the trimmed strip counts against the coverage beyond the rim."""
+    from kneemesh_core.hexmesh.blend import node_rings
+
+    knee = load_knee(real(REAL / "gibbons_imorphics" / "labels" / "9003406M00.nii.gz"))
+    tissue = "patellar_cartilage"
+    raw = mesh_cartilage(knee.labels, tissue, HexOptions())
+    patella = reconstruct_bone(knee.labels, "patella", SurfaceOptions())[0]
+    cm = blend_cartilage(raw, patella)
+    b = cm.facts["blend"]
+    assert b["applied"] and b["passed"] and b["columns_trimmed"] > 0, b
+    assert signed_distance(cm.mesh.points, patella).min() >= -T.FUSED_TOL_MM
+    P, P_raw = (int((m.node_layer == 0).sum()) for m in (cm.mesh, raw.mesh))
+    assert P == P_raw - b["columns_trimmed"] and b["columns_trimmed"] <= 0.05 * P_raw  # a strip of the rim, no more
+    # the rim measured again: the columns of the new outermost ring stand on the new edge
+    quads = cm.mesh.hexes[cm.mesh.layer == 0][:, :4]
+    nearest = node_rings(quads, cm.mesh.node_edge[:P])[quads].min(1)
+    element_ring = cm.mesh.ring[:len(quads)]
+    assert (nearest[element_ring == 0] == 0).all() and (nearest <= element_ring).all()
+    untrimmed = blend_cartilage(raw, patella, BlendOptions(trim_rounds=0)).facts["blend"]
+    assert untrimmed["bone_penetration_mm"] > 0.3  # what trimming is for
+    assert b["beyond_rim"]["coverage"] <= untrimmed["beyond_rim"]["coverage"] and b["fidelity"]["coverage"] >= T.MIN_COVERAGE

@@ -7,7 +7,8 @@ columns of a finished :class:`.extrude.HexMesh`:
 1. **Fuse**: every bone-side node moves to its nearest point on the bone surface
    (the bone mesh the job writes, so an FE tie finds the nodes on it) wherever
    the elements around it stay valid; nodes more than ``fuse_max_mm`` from the
-   bone stay where they are.
+   bone stay where they are.  Columns still in the bone are lifted out (:func:`_lift`),
+   and rim columns that stay in it are trimmed off (:func:`_trim_buried`).
 2. **Blend**: within ``rings`` rings of the edge the bone side reaches out along
    the bone (``bone_share`` of the run of a slope at ``angle_deg`` over the edge
    thickness, graded to nothing at ring ``rings``; feet march over the bone so a
@@ -45,7 +46,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from kneemesh_core.geometry import interpolate_layers, quad_node_normals, unit
-from kneemesh_core.hexmesh.extrude import HexMesh
+from kneemesh_core.hexmesh.extrude import HexMesh, trim_columns
 from kneemesh_core.hexmesh.optimize import independent, layer_quality
 from kneemesh_core.hexmesh.quadmesh import quad_edges
 from kneemesh_core.hexmesh.quality import crossing_nodes
@@ -63,6 +64,7 @@ class BlendOptions:
     fuse_max_mm: float = 1.5
     max_backoffs: int = 10
     backoffs_per_column: int = 5
+    trim_rounds: int = 2
 
 
 def _layer0_quads(hm: HexMesh) -> np.ndarray:
@@ -272,54 +274,95 @@ def fuse(hm: HexMesh, bone: "_Bone", opts: BlendOptions = BlendOptions()) -> tup
         # nodes still inside again, a few at a time, no two sharing an element
         move, a = _add_back(hm, b, a, target, move, inside & ~move, floor)
     b = np.where(move[:, None], target, b)
-    lifted, a = _lift(hm, b, a, bone, floor)
+    # the lifts may not take an element below 0.5 that is above it now (those below keep the floor):
+    # where no lift clears the bone without that, the rim's column is trimmed instead (_trim_buried)
+    now = layer_quality(np.concatenate([b[quads], a[quads]], axis=1), L)[0].ravel()
+    lifted, a = _lift(hm, b, a, bone, np.maximum(floor, np.minimum(now, MIN_SCALED_JACOBIAN)))
     move &= (lifted == b).all(1)  # a fused node lifted with its neighbour is off the bone now
     b = lifted
     return dataclasses.replace(hm, points=interpolate_layers(b, a, L)), move
 
 
 def _lift(hm: HexMesh, b: np.ndarray, a: np.ndarray, bone: "_Bone", floor: np.ndarray,
-          spreads=((0.6, 0.3), (0.8, 0.6, 0.4, 0.2), (0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.1)),
-          rounds: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Carry the columns still (a node of them) inside the bone out of it whole.
+          spreads=((0.6, 0.3), (0.8, 0.6, 0.4, 0.2)), rounds: int = 4, backoffs: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Carry the columns still (a node of them) inside the bone out of it.
 
-    Where the bone mesh bulges over the cartilage's rim (its smoothing fills the step at the
-    cartilage edge), a bone-side node cannot reach the surface without crushing its column:
-    the column and its articular node go out together, and the neighbours by a decaying share
-    of the lift (``spreads``: one profile per try) so no element shears.  The way out is the
-    bone normal or, for the columns inside, the shortest way from their deepest node; of the
-    lifts that keep every element at its floor, the one leaving the least depth is made.
-    Returns the bone-side and articular nodes (P, 3).
+    Two ways in, two ways out.  Where the bone surface bulges over the cartilage's rim (its
+    smoothing fills the step at the cartilage edge), a bone-side node cannot reach the surface
+    without crushing its column: the column and its articular node go out together, along the bone
+    normal or the shortest way from its deepest node.  Where a fused column at the rim runs along
+    the bone rather than away from it (the label's rim thins to nothing along the bone), its
+    articular node lies in the bone beside its foot: the articular node alone comes out along the
+    bone normal there, the foot staying on the bone.  The neighbours follow by a decaying share of
+    the lift (``spreads``), so no element shears.  Each way out is tried in turn on the columns still
+    inside: a column whose lift (or a neighbour's share of it) takes an element below its floor lifts
+    less, 40 % less a time, nothing after four; the lifts are made where they leave the column less
+    deep.  Returns the bone-side and articular nodes (P, 3).
     """
     P, L = len(b), int(hm.node_layer.max())
     quads = _layer0_quads(hm)
     e = quad_edges(quads)
+
+    def depth_of(b, a, cols=slice(None)):  # of the columns ``cols``: their deepest node's depth in the bone
+        pts = interpolate_layers(b, a, L).reshape(L + 1, P, 3)[:, cols]
+        return -bone.signed(pts.reshape(-1, 3)).reshape(L + 1, -1).min(0)
+
+    depth = depth_of(b, a)
     for _ in range(rounds):  # each way out is only right near where it was measured: measure again
-        pts = interpolate_layers(b, a, L).reshape(L + 1, P, 3)
-        sd = bone.signed(pts.reshape(-1, 3)).reshape(L + 1, P)
-        depth = -sd.min(0)
-        need = np.where(depth > FUSED_TOL_MM, depth + 0.01, 0.0)
-        if not need.any():
+        if not (depth > FUSED_TOL_MM).any():
             break
-        normal = bone.normal(b)
-        cols = np.flatnonzero(need)
-        deepest = pts[sd[:, cols].argmin(0), cols]
-        shortest = normal.copy()
-        out = bone.closest(deepest) - deepest
-        shortest[cols] = unit(out)
-        best = None
-        for lift in (_spread(need, e, spread) for spread in spreads):
-            near = (lift > 0)[hm.hexes % P].any(1)  # only these elements change
-            for d in (normal, shortest):
-                nb, na = b + lift[:, None] * d, a + lift[:, None] * d
-                if _bad_columns(quads, nb, na, floor, near).any():
+        before = depth.copy()
+        for spread in spreads:
+            for way in ("normal", "shortest", "articular"):
+                need = np.where(depth > FUSED_TOL_MM, depth + FUSED_TOL_MM, 0.0)
+                if not need.any():
+                    break
+                if way == "articular":
+                    d = bone.normal(a)
+                elif way == "normal":
+                    d = bone.normal(b)
+                else:  # from each column's deepest node, the shortest way out
+                    cols = np.flatnonzero(need)
+                    pts = interpolate_layers(b, a, L).reshape(L + 1, P, 3)
+                    sd = bone.signed(pts[:, cols].reshape(-1, 3)).reshape(L + 1, -1)
+                    deepest = pts[sd.argmin(0), cols]
+                    d = bone.normal(b)
+                    d[cols] = unit(bone.closest(deepest) - deepest)
+                nb, na = _backed_off_lift(quads, e, b, a, d, need, spread, way != "articular", floor, backoffs)
+                moved = (nb != b).any(1) | (na != a).any(1)
+                if not moved.any():
                     continue
-                left = -bone.signed(interpolate_layers(nb, na, L).reshape(L + 1, P, 3)[:, lift > 0].reshape(-1, 3)).min()
-                if best is None or left < best[0]:
-                    best = (left, nb, na)
-        if best is None or best[0] >= depth.max():
+                after = depth.copy()
+                after[moved] = depth_of(nb, na, moved)
+                if after.max() <= depth.max() + 1e-9 and after.sum() < depth.sum():
+                    b, a, depth = nb, na, after
+        if not (depth < before - 1e-3).any():
             break
-        _, b, a = best
+    return b, a
+
+
+def _backed_off_lift(quads: np.ndarray, e: np.ndarray, b: np.ndarray, a: np.ndarray, d: np.ndarray, need: np.ndarray,
+                     spread: tuple[float, ...], whole: bool, floor: np.ndarray, backoffs: int) -> tuple[np.ndarray, np.ndarray]:
+    """The nodes (P, 3 each) with each column lifted by ``need`` (P,) mm along ``d`` (P, 3) (its neighbours
+    by ``spread``'s shares; the articular node alone unless ``whole``), where a column whose lift takes an
+    element below its ``floor`` lifts 40 % less a time, nothing after ``backoffs // 2`` tries."""
+    scale = np.ones(len(b))
+    tries = np.zeros(len(b), int)
+    element_nodes = np.tile(quads, (len(floor) // len(quads), 1))  # each element's bone-side nodes, layer by layer
+    for _ in range(backoffs):
+        lift = _spread(need * scale, e, spread)
+        nb, na = (b + lift[:, None] * d if whole else b), a + lift[:, None] * d
+        bad = _bad_columns(quads, nb, na, floor, (lift > 0)[element_nodes].any(1))
+        if not bad.any():
+            return nb, na
+        for _ in range(len(spread)):  # the columns whose lift reaches the offending elements
+            grown = bad.copy()
+            grown[e[bad[e[:, 0]], 1]] = True
+            grown[e[bad[e[:, 1]], 0]] = True
+            bad = grown
+        culprits = bad & (need * scale > 0)
+        tries[culprits] += 1
+        scale[culprits] = np.where(tries[culprits] >= backoffs // 2, 0.0, 0.6 * scale[culprits])
     return b, a
 
 
@@ -460,10 +503,11 @@ class _EdgeBlend:
         lattice beside the edge, reaching for the same bone)."""
         P, L, zone = self.P, self.L, self.zone
         bad = _bad_columns(self.quads, pts[:P], pts[L * P:], self.floor, self.moving)
-        if self.bone is not None:  # no node of a blended column may end up inside the bone
-            above = pts.reshape(L + 1, P, 3)[1:, self.cols].reshape(-1, 3)
-            inside = (self.signed_at(above) < -FUSED_TOL_MM).reshape(L, -1).any(0)
-            bad[self.cols[inside]] = True
+        if self.bone is not None:  # no node of a blended column may end up inside the bone (a fused foot slides on it)
+            nodes = pts.reshape(L + 1, P, 3)[:, self.cols].reshape(-1, 3)
+            inside = (self.signed_at(nodes) < -FUSED_TOL_MM).reshape(L + 1, -1)
+            inside[0] &= ~self.fused[self.cols]
+            bad[self.cols[inside.any(0)]] = True
         bad &= (scale > 0) & zone
         if not bad.any():
             bad[crossing_nodes(pts, self.hm.hexes) % P] = True
@@ -515,16 +559,47 @@ class _EdgeBlend:
         }
 
 
-def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptions()) -> tuple[HexMesh, dict]:
-    """Fuse (when a bone surface is given) and blend; returns the new mesh and the ``blend`` report."""
-    fused = np.zeros(_columns(hm)[0], bool)
+def blend(hm: HexMesh, bone: pv.PolyData | None, opts: BlendOptions = BlendOptions()) -> tuple[HexMesh, dict, np.ndarray]:
+    """Fuse (when a bone surface is given), trim the rim columns left in the bone, and blend; returns
+    the new mesh, the ``blend`` report and which of ``hm``'s bone-side quads (Q,) it keeps."""
+    P, _ = _columns(hm)
+    fused = np.zeros(P, bool)
+    keep = np.ones(len(_layer0_quads(hm)), bool)
+    trimmed = 0
     if bone is not None:
         bone = _Bone(bone)
         hm, fused = fuse(hm, bone, opts)
+        hm, fused, keep = _trim_buried(hm, bone, fused, opts.trim_rounds)
+        trimmed = P - _columns(hm)[0]
     edge = _EdgeBlend(hm, bone, fused, opts)
     scale, pts, backoffs = edge.back_off()
     out_hm = dataclasses.replace(hm, points=pts)
-    return out_hm, edge.facts(out_hm, scale, backoffs)
+    return out_hm, {**edge.facts(out_hm, scale, backoffs), "columns_trimmed": int(trimmed)}, keep
+
+
+def _trim_buried(hm: HexMesh, bone: "_Bone", fused: np.ndarray, rounds: int) -> tuple[HexMesh, np.ndarray, np.ndarray]:
+    """The fused mesh without the rim columns that fusion could not bring out of the bone.
+
+    At its rim a label's cartilage thins to nothing along the bone, and there the columns run along
+    the bone rather than away from it: where the bone surface curves under such a column (or the
+    segmentations disagree by a voxel) a node stays inside however the column is moved.  Those
+    columns, of the outer two rings, go with the elements on them, ``rounds`` times at most (the new
+    rim measured each time); deeper columns stay (the blend's checks then report them).
+    Returns the mesh, the fused mask of its bone-side nodes and which of the input's bone-side
+    quads (Q,) it keeps."""
+    keep = np.ones(len(_layer0_quads(hm)), bool)
+    for _ in range(rounds):
+        P, L = _columns(hm)
+        quads = _layer0_quads(hm)
+        ring = node_rings(quads, hm.node_edge[:P])
+        buried = (bone.signed(hm.points).reshape(L + 1, P).min(0) < -FUSED_TOL_MM) & (ring <= 1)
+        if not buried.any():
+            break
+        drop = buried[quads].any(1)
+        keep[np.flatnonzero(keep)[drop]] = False
+        hm, kept = trim_columns(hm, ~drop)
+        fused = fused[kept]
+    return hm, fused, keep
 
 
 def _bone_normals(b: np.ndarray, quads: np.ndarray, column: np.ndarray) -> np.ndarray:

@@ -29,10 +29,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pyvista as pv
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from kneemesh_core.geometry import interpolate_layers, quad_node_normals, unit
 from kneemesh_core.hexmesh.footprint import Footprint
@@ -375,3 +377,32 @@ def keep_columns(hm: HexMesh, quads: np.ndarray, keep: np.ndarray) -> HexMesh:
     kept = np.tile(keep, len(hm.hexes) // len(quads))
     return HexMesh(hm.points[keep_nodes], index[hm.hexes[kept]], hm.layer[kept], hm.ring[kept], hm.node_layer[keep_nodes],
                    hm.node_edge[keep_nodes], hm.node_piece[keep_nodes])
+
+
+def trim_columns(hm: HexMesh, keep: np.ndarray) -> tuple[HexMesh, np.ndarray]:
+    """:func:`keep_columns` over ``hm``'s own bone-side quads, keep (Q,) bool, with the edge and the rings
+    measured again on what is left: ``node_edge`` the nodes of edges that one quad uses, ``ring`` 0 for
+    the columns over a quad with such an edge and one more per quad crossed beyond.  Returns the mesh and
+    which bone-side nodes (P,) it kept."""
+    levels = int(hm.node_layer.max()) + 1
+    quads = hm.hexes[hm.layer == 0][:, :4]
+    kept_nodes = np.zeros(len(hm.points) // levels, bool)
+    kept_nodes[quads[keep]] = True
+    out = keep_columns(hm, quads, keep)
+    quads = out.hexes[out.layer == 0][:, :4]
+    sides = np.sort(quad_edges(quads, unique=False), 1)  # side k of quad q at k * Q + q
+    _, side, count = np.unique(sides, axis=0, return_inverse=True, return_counts=True)
+    side = side.ravel()
+    open_side = count[side] == 1
+    edge = np.zeros(int(kept_nodes.sum()), bool)
+    edge[sides[open_side].ravel()] = True
+    q = len(quads)
+    owner = np.tile(np.arange(q), 4)
+    shared = count[side] == 2
+    order = np.argsort(side[shared], kind="stable")  # the shared sides, in pairs
+    pairs = owner[shared][order].reshape(-1, 2)
+    adjacency = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(q, q))
+    outer = np.unique(owner[open_side])
+    ring = dijkstra(adjacency, directed=False, indices=outer, unweighted=True, min_only=True)
+    ring = np.where(np.isfinite(ring), ring, 0).astype(hm.ring.dtype)
+    return replace(out, ring=np.tile(ring, levels - 1), node_edge=np.tile(edge, levels)), kept_nodes

@@ -19,7 +19,7 @@ import SimpleITK as sitk
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.hexmesh.blend import BlendOptions, blend
 from kneemesh_core.hexmesh.domain import CylinderDomain, PlaneDomain
-from kneemesh_core.hexmesh.extrude import HexMesh, extrude, keep_columns
+from kneemesh_core.hexmesh.extrude import HexMesh, extrude, keep_columns, trim_columns
 from kneemesh_core.hexmesh.fidelity import (FIGURES, beyond_rim_checks, fidelity, fidelity_checks, passes_fidelity,
                                             short_of_footprint)
 from kneemesh_core.hexmesh.footprint import Footprint, find_footprint
@@ -443,7 +443,7 @@ def blend_cartilage(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOpti
 def _blend_checked(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOptions) -> CartilageMesh:
     t0 = time.perf_counter()
     try:
-        hm, done = blend(cm.mesh, bone, opts)
+        hm, done, kept = blend(cm.mesh, bone, opts)
     except Exception as exc:  # the unblended mesh is still a good mesh
         return dataclasses.replace(cm, facts={**cm.facts, "fused_fraction": 0.0, "blend": {
             "applied": False, "passed": False, "reason": f"{type(exc).__name__}: {exc}"}})
@@ -482,7 +482,9 @@ def _blend_checked(cm: CartilageMesh, bone: pv.PolyData | None, opts: BlendOptio
         return dataclasses.replace(cm, facts={**cm.facts, "fused_fraction": 0.0, "blend": report})
     # the fidelity figures of the file that ships; the 45 deg edge reshapes the outer rings on purpose, so
     # the targets judge the mesh before the blend and, on the blended file, what lies beyond those rings
-    shipped = fidelity(hm, cm.surface, cm.facts["label_volume_ml"], unblended=cm.mesh, rings=opts.rings)
+    # (the rim columns the blend trimmed off count as uncovered: the mesh before the blend without them)
+    unblended = cm.mesh if kept.all() else trim_columns(cm.mesh, kept)[0]
+    shipped = fidelity(hm, cm.surface, cm.facts["label_volume_ml"], unblended=unblended, rings=opts.rings)
     report["fidelity"] = {**{k: shipped[k] for k in FIGURES}, "passed": passes_fidelity(shipped)}
     rim = shipped["beyond_rim"]
     report["beyond_rim"] = {**rim, "passed": all(beyond_rim_checks(rim).values())}
