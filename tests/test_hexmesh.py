@@ -474,3 +474,38 @@ def test_keep_columns_leaves_out_whole_columns_and_keeps_the_nodes_layer_by_laye
     np.testing.assert_array_equal(kept.points[kept.hexes], points[hexes[[1, 3]]])
     np.testing.assert_array_equal(kept.node_layer, np.repeat([0, 1, 2], 4))
     assert (kept.points[kept.node_layer == 1][:, 2] == 0.5).all()
+
+
+def test_trimmed_columns_leave_a_mesh_whose_edge_and_rings_are_measured_again(sample):
+    """Trimming nothing gives back the mesher's own edge and rings; trimming the outermost ring makes
+    the next ring the outermost, the nodes it shared with the trimmed ring the edge."""
+    from kneemesh_core.hexmesh.extrude import trim_columns
+
+    hm = mesh_cartilage(sample.labels, "medial_tibial_cartilage").mesh
+    quads = hm.hexes[hm.layer == 0][:, :4]
+    q, P = len(quads), int((hm.node_layer == 0).sum())
+    same, kept = trim_columns(hm, np.ones(q, bool))
+    assert kept.all() and np.array_equal(same.ring, hm.ring) and np.array_equal(same.node_edge, hm.node_edge)
+    outer = hm.ring[:q] == 0
+    inner, kept = trim_columns(hm, ~outer)
+    assert kept.sum() == len(np.unique(quads[~outer])) and len(inner.hexes) == len(hm.hexes) // q * (~outer).sum()
+    np.testing.assert_array_equal(inner.ring[:(~outer).sum()], hm.ring[:q][~outer] - 1)
+    shared = np.zeros(P, bool)
+    shared[quads[outer]] = True
+    np.testing.assert_array_equal(inner.node_edge[:kept.sum()], shared[kept])
+    np.testing.assert_array_equal(inner.points[:kept.sum()], hm.points[:P][kept])  # the nodes themselves stay
+
+
+def test_a_chain_past_its_time_budget_ships_its_best_usable_attempt_for_review():
+    """A paper's-cohort knee (9493245, baseline) whose lateral plate needs three fallbacks: with no time
+    left after its first (usable) attempt the chain stops there, and the plate ships that attempt as
+    review, saying why."""
+    from conftest import REAL
+    from kneemesh_core.job.verdict import cartilage_reasons
+
+    labels = load_knee(real(REAL / "gibbons_imorphics" / "labels" / "9493245M00.nii.gz")).labels
+    full = mesh_cartilage(labels, "lateral_tibial_cartilage").facts
+    assert len(full["attempts"]) > 1 and full["chain_stopped_after_s"] is None  # the case this is for
+    f = mesh_cartilage(labels, "lateral_tibial_cartilage", HexOptions(chain_budget_s=0.0)).facts
+    assert f["attempts"] == ["default"] and f["usable"] and f["chain_stopped_after_s"] >= 0.0, f["attempts"]
+    assert any("time budget" in r for r in cartilage_reasons(f))

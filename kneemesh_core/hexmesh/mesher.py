@@ -54,6 +54,8 @@ class HexOptions:
     pass_band: float = 0.02  # windowed-sinc smoothing of the cartilage surface (smaller: smoother)
     probe_inset: float = 0.0  # contour nodes read heights this many elements inside (folded rims)
     fallbacks: bool = True  # try the FALLBACKS when the first attempt misses the gate or a fidelity target
+    # no fallback starts after this many seconds once an attempt is usable: it ships, for review
+    chain_budget_s: float = 30.0
 
 
 #: The fallback chain: each entry changes some options; the first attempt within the gate and the
@@ -293,6 +295,16 @@ class _Chain:
         self.tried: list[str] = []
         self.best: Attempt | None = None
         self.cache: dict = {}
+        self.t0 = time.perf_counter()
+        self.stopped_after_s: float | None = None
+
+    def out_of_time(self) -> bool:
+        """Whether the chain has run past its budget with a usable attempt in hand (then it stops:
+        ``stopped_after_s``)."""
+        elapsed = time.perf_counter() - self.t0
+        if elapsed > self.opts.chain_budget_s and self.best is not None and self.best.usable:
+            self.stopped_after_s = round(elapsed, 1)
+        return self.stopped_after_s is not None
 
     def attempt(self, name: str, o: HexOptions, h: float) -> bool:
         """One attempt; whether it ends the chain (within the gate and faithful)."""
@@ -332,6 +344,8 @@ class _Chain:
         if order and self.floor_excess_of_default(base) > MAX_FLOOR_EXCESS:
             order = sorted(order, key=lambda fallback: "element_size_factor" not in fallback[1])  # stable
         for name, change in order:
+            if self.out_of_time():
+                return False
             best = self.best
             short = best is not None and short_of_footprint(best.fidelity)
             # narrowing cannot help a mesh within the gate that already covers too little; widening is
@@ -386,7 +400,7 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
     t0 = time.perf_counter()
     chain = _Chain(labels, tissue, opts)
     fewer_because = None
-    if not chain.run(opts) and opts.fallbacks and chain.best is not None:
+    if not chain.run(opts) and opts.fallbacks and chain.best is not None and not chain.out_of_time():
         fewer_because = chain.in_fewer_layers()
     best = chain.best
     if best is None:
@@ -406,6 +420,7 @@ def mesh_cartilage(labels: sitk.Image, tissue: str, opts: HexOptions = HexOption
         "finer_pieces": best.finer_pieces,
         "fallbacks": [] if best.name == "default" else [best.name],
         "attempts": chain.tried,
+        "chain_stopped_after_s": chain.stopped_after_s,
         "domain": best.domain.describe(),
         "gate_passed": bool(best.within_gate),
         "usable": bool(best.usable),

@@ -92,6 +92,9 @@ def cartilage_reasons(e: dict) -> list[str]:
         if deviation := _missed_deviation(rim["surface_deviation_mm"], rim_checks):
             missed.append(f"its articular surface lies {deviation} from the cartilage's")
         out.append(f"beyond the {rim['rings']} rings of its edge that the blend reshapes, the blended file " + " and ".join(missed))
+    if e.get("chain_stopped_after_s") is not None:
+        out.append(f"its fallbacks stopped at their time budget ({e['chain_stopped_after_s']} s): the best usable of "
+                   f"{len(e.get('attempts', []))} attempts ships")
     conform = e.get("bone_conform")
     if conform and conform.get("penetration_conformed_mm", 0) > FUSED_TOL_MM:
         out.append(f"lies {conform['penetration_conformed_mm']} mm inside its bone after the bone gave way "
