@@ -45,6 +45,19 @@ def triangle_node_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray
     return np.bincount(triangles.ravel(), np.repeat(area / 3, 3), minlength=len(points))
 
 
+def evenly_spread(points: np.ndarray, triangles: np.ndarray, spacing_mm: float) -> np.ndarray:
+    """Points (M, 3) mm spread evenly over a triangle surface (``points`` (N, 3) mm, ``triangles`` (T, 3)),
+    one per sqrt(3)/2 x ``spacing_mm``^2 of its area (a vertex's share in a mesh of that edge): the
+    centroids of the triangles that each such step of the area summed in triangle order ends in.  A mesh
+    finer in places (a bone shell under its cartilage) is then fitted as if it were even, and the same
+    mesh moved gives the same points moved."""
+    corners = points[triangles]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    steps = np.arange(0.5, area.sum() / (np.sqrt(3) / 2 * spacing_mm**2)) * (np.sqrt(3) / 2 * spacing_mm**2)
+    picked = np.unique(np.searchsorted(np.cumsum(area), steps))
+    return corners[np.minimum(picked, len(triangles) - 1)].mean(1)
+
+
 def interpolate_layers(bottom: np.ndarray, top: np.ndarray, layers: int) -> np.ndarray:
     """The nodes of ``layers`` element layers spaced evenly along straight columns from ``bottom``
     to ``top`` (both (P, 3)): ((layers + 1) * P, 3), layer by layer, bottom first."""

@@ -25,7 +25,8 @@ def check_bone(mesh, facts, labels: sitk.Image, tissue: str):
     assert facts["self_intersections"] == 0
     assert abs(facts["volume_ml"] - facts["label_volume_ml"]) <= 0.03 * facts["label_volume_ml"], facts
     assert facts["surface_distance_mm"]["mean"] <= 0.3 and facts["surface_distance_mm"]["p95"] <= 0.8, facts
-    assert 2.6 <= facts["edge_mm"]["mean"] <= 3.4
+    # (the density-weighted clustering leaves the edges away from the cartilage at 2.5-2.8 mm on real knees)
+    assert 2.4 <= facts["edge_mm"]["mean"] <= 3.4, facts["edge_mm"]
     # under its cartilage the shell takes the cartilage's element size (SurfaceOptions.articular_edge_mm)
     assert facts["articular_edge_mm"] is None or 0.8 <= facts["articular_edge_mm"]["mean"] <= 1.3, facts
     assert mesh.volume > 0  # outward normals: positive enclosed volume

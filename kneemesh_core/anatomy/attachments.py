@@ -33,6 +33,7 @@ from scipy.spatial import cKDTree
 from kneemesh_core.anatomy import template as tmpl
 from kneemesh_core.anatomy.frames import Frame, coarse_axes, femur_frame, grood_suntay, patella_frame, tibia_frame
 from kneemesh_core.anatomy.register import Registration, register, shape_verdict
+from kneemesh_core.geometry import evenly_spread
 
 #: A registration residual (trimmed RMS, mm) above this is implausible for a bone of a knee: on the
 #: 126 real maps here and their mirror images the largest were femur 1.3, tibia 1.6, patella 1.8 mm
@@ -44,6 +45,11 @@ MAX_PLAUSIBLE_RMS_MM = {"femur": 1.8, "tibia": 2.2, "patella": 2.5}
 #: the sample's femur and tibia stand in its image pose (scripts/build_anatomy_template.py).
 LONG_AXIS_SOURCE = {"femur": "the registered template's (the femur template's frame)",
                     "tibia": "the registered template's (Lenhart 2015 tibial frame)"}
+#: The spacing (mm) of the points the registrations and frames fit (:func:`~kneemesh_core.geometry.evenly_spread`):
+#: the 3 mm of the even shells they were built on (a shell is 1 mm under its cartilage now).  The image pose's
+#: flexion moves with the sampling by a few degrees (OAI 9031930_00m: -8 to -13 deg over 2-3 mm samplings of
+#: one shell): the registration of a template tibia to the few centimetres of shaft in view is that loose.
+FIT_SPACING_MM = 3.0
 
 
 @dataclass
@@ -68,14 +74,16 @@ def place(bones: dict[str, pv.PolyData], side: str, plates: tuple[np.ndarray, np
     """
     t0 = time.perf_counter()
     template = tmpl.load()
-    pts = {b: np.asarray(m.points, float) for b, m in bones.items() if m is not None and m.n_points}
+    vertices = {b: np.asarray(m.points, float) for b, m in bones.items() if m is not None and m.n_points}
+    # the registrations and frames fit the surfaces evenly: a shell is finer under its cartilage
+    pts = {b: evenly_spread(vertices[b], bones[b].regular_faces, FIT_SPACING_MM) for b in vertices}
     unplaced_bones = {b: f"no {b} mesh" for b in tmpl.BONES if b not in pts}
     if "femur" not in pts or "tibia" not in pts:
         return Anatomy({}, {"status": "failed", "reason": "the femur and the tibia are both needed for the knee's frames",
                             "code": "bone_missing"}, {}, bones)
     mirrored = side == "left"
     regs, frames, shape = _register(template, pts, side, plates)
-    trees = {b: cKDTree(p) for b, p in pts.items()}
+    trees = {b: cKDTree(v) for b, v in vertices.items()}  # a site's node: the nearest vertex of the shell
     femur_scale = regs["femur"].similarity.scale if "femur" in regs else 1.0  # hip to knee scales with the femur
     unplaced: list[dict] = []
     fibres = [_fibre(fibre, regs, bones, trees, femur_scale, unplaced_bones, unplaced) for fibre in template.fibres]
