@@ -6,7 +6,8 @@ Default maps: every real label map in ../shared/data/real (pymskt and oai_labels
 Prints the success rate (quality gate passed), how many also meet the fidelity targets, a quality table per tissue
 (min scaled Jacobian distribution, fraction < 0.5, edge ratio), fidelity
 (volume error, coverage, articular deviation), fallback counts and time per knee; then the same cartilages
-after edge blending and bone fusion (skip with --no-blend): quality per ring, edge angle, fusion, checks.
+after edge blending and bone fusion (skip with --no-blend): quality per ring, edge angle, fusion, checks,
+the rim columns trimmed.
 """
 
 from __future__ import annotations
@@ -163,7 +164,8 @@ def blend_table(per: dict[str, list[dict]]) -> None:
     for col in ("tissue", "blend passed", "min SJ: median (worst) [unblended]", "% SJ>=0.5: median (worst)",
                 "rings>=2 min SJ (worst)", "ring 0 min SJ: median", "edge angle deg: median of medians (range)",
                 "fused: median (worst)", "full / perimeter / partial / none", "self-int max", "penetration mm max",
-                "after bone conform: passed, penetration max, fused worst", "blend s median"):
+                "after bone conform: passed, penetration max, fused worst", "rim columns trimmed: cartilages, max",
+                "blend s median"):
         table.add_column(col)
     for t in CARTILAGES:
         b = [f for f in per[t] if "blend" in f and "frac_sj_at_least_0_5" in f["blend"]]
@@ -188,6 +190,8 @@ def blend_table(per: dict[str, list[dict]]) -> None:
                       f"{max(f['blend']['bone_penetration_mm'] or 0 for f in b):.3f}",
                       f"{conformed}/{len(per[t])}, {max((f['bone_conform']['penetration_conformed_mm'] for f in c), default=0):.3f}, "
                       f"{min((f['bone_conform']['fused_fraction_conformed'] for f in c), default=1):.3f}",
+                      f"{sum(bool(f['blend'].get('columns_trimmed')) for f in b)}, "
+                      f"{max(f['blend'].get('columns_trimmed', 0) for f in b)}",
                       f"{np.median([f['blend']['seconds'] for f in b]):.2f}")
     console.print(table)
 
