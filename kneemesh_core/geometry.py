@@ -37,12 +37,16 @@ def quad_node_areas(points: np.ndarray, quads: np.ndarray) -> np.ndarray:
     return np.bincount(quads.ravel(), np.repeat(area / 4, 4), minlength=len(points))
 
 
+def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """The area (T,) of each triangle (T, 3) of ``points`` (P, 3), in their units squared."""
+    p = points[triangles]
+    return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+
+
 def triangle_node_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Each node's share (P,) of the area of the triangles (T, 3) around it, a third of each triangle's, in
     the units of ``points`` (P, 3) squared."""
-    p = points[triangles]
-    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    return np.bincount(triangles.ravel(), np.repeat(area / 3, 3), minlength=len(points))
+    return np.bincount(triangles.ravel(), np.repeat(triangle_areas(points, triangles) / 3, 3), minlength=len(points))
 
 
 def evenly_spread(points: np.ndarray, triangles: np.ndarray, spacing_mm: float) -> np.ndarray:
@@ -51,11 +55,10 @@ def evenly_spread(points: np.ndarray, triangles: np.ndarray, spacing_mm: float) 
     centroids of the triangles that each such step of the area summed in triangle order ends in.  A mesh
     finer in places (a bone shell under its cartilage) is then fitted as if it were even, and the same
     mesh moved gives the same points moved."""
-    corners = points[triangles]
-    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-    steps = np.arange(0.5, area.sum() / (np.sqrt(3) / 2 * spacing_mm**2)) * (np.sqrt(3) / 2 * spacing_mm**2)
-    picked = np.unique(np.searchsorted(np.cumsum(area), steps))
-    return corners[np.minimum(picked, len(triangles) - 1)].mean(1)
+    area = triangle_areas(points, triangles)
+    share = np.sqrt(3) / 2 * spacing_mm**2
+    picked = np.unique(np.searchsorted(np.cumsum(area), np.arange(0.5, area.sum() / share) * share))
+    return points[triangles[np.minimum(picked, len(triangles) - 1)]].mean(1)
 
 
 def interpolate_layers(bottom: np.ndarray, top: np.ndarray, layers: int) -> np.ndarray:

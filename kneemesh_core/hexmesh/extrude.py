@@ -33,13 +33,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import pyvista as pv
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from kneemesh_core.geometry import interpolate_layers, quad_node_normals, unit
 from kneemesh_core.hexmesh.footprint import Footprint
 from kneemesh_core.hexmesh.optimize import choose_columns, choose_tops, settle
-from kneemesh_core.hexmesh.quadmesh import EIGHT_DIRECTIONS, QuadMesh, quad_edges
+from kneemesh_core.hexmesh.quadmesh import EIGHT_DIRECTIONS, QuadMesh, quad_edges, quad_rings
 from kneemesh_core.hexmesh.rays import crossings, first_crossing, intersector
 from kneemesh_core.hexmesh.targets import EDGE_RATIO_AIM, MIN_SCALED_JACOBIAN
 
@@ -392,17 +390,8 @@ def trim_columns(hm: HexMesh, keep: np.ndarray) -> tuple[HexMesh, np.ndarray]:
     quads = out.hexes[out.layer == 0][:, :4]
     sides = np.sort(quad_edges(quads, unique=False), 1)  # side k of quad q at k * Q + q
     _, side, count = np.unique(sides, axis=0, return_inverse=True, return_counts=True)
-    side = side.ravel()
-    open_side = count[side] == 1
+    open_side = count[side.ravel()] == 1
     edge = np.zeros(int(kept_nodes.sum()), bool)
     edge[sides[open_side].ravel()] = True
-    q = len(quads)
-    owner = np.tile(np.arange(q), 4)
-    shared = count[side] == 2
-    order = np.argsort(side[shared], kind="stable")  # the shared sides, in pairs
-    pairs = owner[shared][order].reshape(-1, 2)
-    adjacency = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(q, q))
-    outer = np.unique(owner[open_side])
-    ring = dijkstra(adjacency, directed=False, indices=outer, unweighted=True, min_only=True)
-    ring = np.where(np.isfinite(ring), ring, 0).astype(hm.ring.dtype)
+    ring = np.maximum(quad_rings(quads, open_side.reshape(4, -1).any(0)), 0).astype(hm.ring.dtype)
     return replace(out, ring=np.tile(ring, levels - 1), node_edge=np.tile(edge, levels)), kept_nodes

@@ -280,7 +280,7 @@ def _lattice_mesh(fp: Footprint, h: float, inset: float) -> QuadMesh | None:
     on_poly_all = np.full(len(points), -1)
     on_poly_all[n0:] = on_poly
     points = _optimise(points, quads, contour, h, on_poly_all, polys)
-    return QuadMesh(points, quads, contour, _rings(quads, len(quads) - len(pillow)), (fp,), np.zeros(len(points), int))
+    return QuadMesh(points, quads, contour, quad_rings(quads, np.arange(len(quads)) >= len(quads) - len(pillow)), (fp,), np.zeros(len(points), int))
 
 
 def _contour_polylines(fp: Footprint) -> list[np.ndarray]:
@@ -519,8 +519,9 @@ def _quality_of(corners: np.ndarray) -> np.ndarray:
     return (cross / np.maximum(norm, 1e-12)).min(1)
 
 
-def _rings(quads: np.ndarray, first_pillow: int) -> np.ndarray:
-    """Distance in quads from the pillow ring (ring 0), by breadth-first search over shared edges."""
+def quad_rings(quads: np.ndarray, outer: np.ndarray) -> np.ndarray:
+    """Distance in quads (Q,) from the ``outer`` ones (Q,) bool, ring 0, by breadth-first search over
+    shared edges; -1 where none is reached."""
     owner = np.tile(np.arange(len(quads)), 4)
     key = np.sort(quad_edges(quads, unique=False), 1)
     order = np.lexsort((key[:, 1], key[:, 0]))
@@ -531,9 +532,8 @@ def _rings(quads: np.ndarray, first_pillow: int) -> np.ndarray:
     for x, y in zip(a.tolist(), b.tolist()):
         adj[x].append(y)
         adj[y].append(x)
-    ring = np.full(len(quads), -1)
-    queue = deque(range(first_pillow, len(quads)))
-    ring[first_pillow:] = 0
+    ring = np.where(outer, 0, -1)
+    queue = deque(np.flatnonzero(outer).tolist())
     while queue:
         q = queue.popleft()
         for r in adj[q]:

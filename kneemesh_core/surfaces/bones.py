@@ -18,7 +18,8 @@ from kneemesh_core.surfaces.isosurface import orient_outward
 
 #: Area per vertex of an ideal triangulation with edge e: two equilateral triangles per vertex.
 _AREA_PER_VERTEX = np.sqrt(3) / 2
-FINE_VERTICES = 4
+#: Vertices of the (subdivided) isosurface per cluster of the finest edge, at least, before a graded clustering.
+_FINE_VERTICES = 4
 
 
 def _meshfix(surf: pv.PolyData) -> pv.PolyData:
@@ -80,7 +81,7 @@ def bone_mesh(surface: pv.PolyData, edge_mm: float = 3.0, *, fine_edge_mm: float
         if fine:
             # enough vertices that the finest clusters still gather a few each
             fine_area = _AREA_PER_VERTEX * fine_edge_mm**2
-            while surface.area / surface.n_points > fine_area / FINE_VERTICES:
+            while surface.area / surface.n_points > fine_area / _FINE_VERTICES:
                 surface = surface.subdivide(1, "linear")
             d = cKDTree(fine_near).query(np.asarray(surface.points), distance_upper_bound=2 * fine_band_mm + 1)[0]
             edge = fine_edge_mm + (edge_mm - fine_edge_mm) * np.clip((d - fine_band_mm) / fine_band_mm, 0.0, 1.0)
