@@ -66,10 +66,34 @@ def one(path: str, mirrored: bool) -> dict:
         draw(anatomy.document, anatomy.bones, anatomy.frames, Path(tmp) / "a.png")
     seconds = time.perf_counter() - t0
     r = anatomy.report
+    tilt = anterior_cortex_tilt(np.asarray(bones["femur"].points), anatomy.frames["femur"])
     return {"knee": Path(path).name, "mirrored": mirrored, "side": knee.side, "side_method": knee.side_method,
             "shape": knee.side_evidence.get("shape") or r["shape_side"], "residuals": r["residuals_mm"],
             "sites": r["sites_placed"], "violations": r["site_rule_violations"], "status": r["status"],
-            "reasons": r["reasons"], "angles": r["angles_deg"], "seconds": seconds, "ingest_seconds": ingest_s}
+            "reasons": r["reasons"], "angles": r["angles_deg"], "cortex_tilt": tilt, "seconds": seconds,
+            "ingest_seconds": ingest_s}
+
+
+def anterior_cortex_tilt(femur: np.ndarray, frame, above_mm: float = 35.0, slab_mm: float = 2.0,
+                         half_width_mm: float = 8.0) -> float | None:
+    """How far the anterior cortex of the femoral shaft in view leans posterior of the femoral frame's
+    long axis, deg: a line through the most anterior surface point (N, 3 points, LPS mm) of each
+    ``slab_mm`` slab, within ``half_width_mm`` of the shaft's middle, from ``above_mm`` above the flexion
+    axis to 3 mm short of the field of view's edge; None where fewer than 5 slabs show it.  The
+    template's :data:`~kneemesh_core.anatomy.template.FEMUR_ANTERIOR_CORTEX_TILT_DEG` is where it came
+    from: 0 over a cohort means the template's axis is the cortex's."""
+    rel = femur - frame.origin
+    h, a, lat = rel @ frame.proximal, rel @ frame.anterior, rel @ frame.lateral
+    up = h > above_mm
+    if up.sum() < 20:
+        return None
+    sel = up & (np.abs(lat - np.median(lat[up])) < half_width_mm) & (a > 0)
+    rows = [(z + slab_mm / 2, a[m].max()) for z in np.arange(above_mm, h[sel].max() - 3.0, slab_mm)
+            if (m := sel & (h >= z) & (h < z + slab_mm)).sum() >= 2]
+    if len(rows) < 5:
+        return None
+    slope = np.polyfit(*np.asarray(rows).T, 1)[0]
+    return round(float(-np.degrees(np.arctan(slope))), 2)
 
 
 def stability(path: str) -> dict:
@@ -188,6 +212,11 @@ def main() -> None:
                   f"anatomy step (one process) median {np.median(secs):.2f} s, max {secs.max():.2f} s; "
                   f"side decision at ingest median {np.median([r['ingest_seconds'] for r in ok]):.2f} s")
     console.print(flexion_summary(ok), highlight=False)
+    tilts = np.array([r["cortex_tilt"] for r in ok if r.get("cortex_tilt") is not None])
+    if len(tilts):
+        console.print(f"the femoral shaft's anterior cortex in view leans posterior of the femoral long axis ({len(tilts)} knees): "
+                      f"median {np.median(tilts):.1f} deg, 10th-90th percentile {np.percentile(tilts, 10):.1f} to "
+                      f"{np.percentile(tilts, 90):.1f}", highlight=False)
     for r in ok:
         if r["violations"] or r["status"] != "ok":
             console.print(f"{r['knee']}{' (mirror)' if r['mirrored'] else ''}: {'; '.join(r['reasons'])}", highlight=False)

@@ -137,7 +137,7 @@ def test_the_flexion_follows_the_tibia_swung_about_the_flexion_axis_whatever_the
     tibia.points = swung(tibia.points)
     after = place({**bones, "tibia": tibia}, knee.side, tuple(swung(p) for p in plates))
     a, b = before.document["angles_deg"], after.document["angles_deg"]
-    assert -20.0 < a["flexion"] < 10.0, a  # a knee in a coil: near extension
+    assert -10.0 < a["flexion"] < 45.0, a  # a knee in a coil: from slight hyperextension to some flexion
     # (how the registrations settle varies with how the shells sample the bones: over even samplings at 2-4 mm of
     # the shells the job ships, finer under the cartilage, the swing reads 14.7-16.5 deg on the mirror image
     # and 14.8-18.6 deg as is; on the even 3 mm shells before them 15.5-19.8 deg: a looseness of the

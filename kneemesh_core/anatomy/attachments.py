@@ -15,7 +15,8 @@ knee's motion leaves unchanged but which sets how much strain a millimetre of it
 length with the bones instead left a knee whose patella sits higher than the template's with its
 patellar tendon 30-40 % stretched in the image pose (OAI 9357383: the seated patella was pulled
 14 mm down and off the trochlea).  This assumes the image pose is near extension, as in OAI's
-DESS; a fibre with an unplaced end keeps the scaled template slack length.
+DESS (the 126 real maps read 4.5-24.7 deg of anatomical flexion, median 13: ``angles_deg``); a fibre with
+an unplaced end keeps the scaled template slack length.
 
 A registration whose residual is implausible (the bone is not what the template expects: a
 cropped or broken segmentation, a foreign object) is reported, and its sites are flagged.
@@ -40,10 +41,8 @@ from kneemesh_core.geometry import evenly_spread
 #: (99th percentiles 1.2, 1.5, 1.7); these leave about 40 % of room above them.
 MAX_PLAUSIBLE_RMS_MM = {"femur": 1.8, "tibia": 2.2, "patella": 2.5}
 #: Where each bone's long axis comes from when its registration is plausible (else the shaft in view,
-#: :mod:`.frames`): the template's proximal axis, so the flexion of two knees means the same.  Lenhart's
-#: tibial frame is his model's (the whole tibia); the femur template's is the sample femur's, set so that
-#: the sample's femur and tibia stand in its image pose (scripts/build_anatomy_template.py).
-LONG_AXIS_SOURCE = {"femur": "the registered template's (the femur template's frame)",
+#: :mod:`.frames`): the template's (:data:`~.template.LONG_AXES`), so the flexion of two knees means the same.
+LONG_AXIS_SOURCE = {"femur": "the registered template's distal anterior femoral cortex",
                     "tibia": "the registered template's (Lenhart 2015 tibial frame)"}
 #: The spacing (mm) of the points the registrations and frames fit (:func:`~kneemesh_core.geometry.evenly_spread`):
 #: the 3 mm of the even shells they were built on (a shell is 1 mm under its cartilage now).  The image pose's
@@ -117,7 +116,7 @@ def _register(template, pts: dict[str, np.ndarray], side: str, plates) -> tuple[
     axes = coarse_axes(pts["femur"], pts["tibia"], pts.get("patella"))
     mirrored = side == "left"
     regs: dict[str, Registration] = {b: register(b, template.points(b), pts[b], axes, mirrored) for b in pts}
-    long = {b: (regs[b].axis("proximal"), LONG_AXIS_SOURCE[b]) for b in ("femur", "tibia")
+    long = {b: (regs[b].direction(tmpl.LONG_AXES[b]), LONG_AXIS_SOURCE[b]) for b in ("femur", "tibia")
             if regs[b].rms_mm <= MAX_PLAUSIBLE_RMS_MM[b]}
     frames = {"femur": femur_frame(pts["femur"], axes, side, long.get("femur")),
               "tibia": tibia_frame(pts["tibia"], axes, side, plates, long.get("tibia"))}

@@ -79,12 +79,12 @@ class Registration:
         x = self.similarity.apply(p)
         return x + _field(x, self.controls, self.moves, self.sigma_mm)
 
-    def axis(self, name: str) -> np.ndarray:
-        """The template's ``anterior``, ``proximal`` or ``lateral`` axis (its x, y, z; see
-        :mod:`.template`) placed on the subject by the similarity: a unit vector (3,), LPS.  The
-        mirrored template's lateral is its -z, so the named axis means the same on either side."""
-        column = self.similarity.rotation[:, ("anterior", "proximal", "lateral").index(name)]
-        return -column if self.mirrored and name == "lateral" else column
+    def direction(self, v: np.ndarray) -> np.ndarray:
+        """A template-frame direction (3,) placed on the subject by the similarity's rotation: a unit
+        vector (3,), LPS (the mirrored template's z is the subject's -z, so a named direction means
+        the same on either side)."""
+        d = self.similarity.rotation @ (_mirror(v[None])[0] if self.mirrored else v)
+        return d / np.linalg.norm(d)
 
     def facts(self) -> dict:
         return {"scale": round(self.similarity.scale, 4), "rms_similarity_mm": round(self.rms_similarity_mm, 3),

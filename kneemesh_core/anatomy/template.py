@@ -31,6 +31,25 @@ SURFACE_FILES = {"femur": DATA / "femur_template.vtp", "tibia": DATA / "lenhart2
 #: The bones a fibre end can sit on (the fibula moves with the tibia: its ends belong to the tibia).
 BONES = ("femur", "tibia", "patella")
 
+#: The femur template's long axis leans this far posterior of its frame's y axis, deg (about its z).
+#: The template's y axis is the sample femur's shaft as its field of view showed it (the line through
+#: its cross-sections, which the metaphysis's posterior flare tilts forward), and through it the image
+#: poses of OAI knees read 12 deg of hyperextension (median; -19 to +1 deg), which no knee lying in a
+#: coil holds.  The anterior cortex of the distal femoral shaft (35 mm above the flexion axis up to the
+#: field of view's edge: no flare in front, the line surgeons align a femoral component to) is the
+#: distal anatomical axis a knee image shows; measured on each knee of the tune half of the paper's
+#: cohort through its registered template (42 maps), it leans 23.8 deg posterior of the template's y
+#: axis (median; 10th-90th percentile 17.7-32.4 deg per knee, too loose for one knee's own, stable for
+#: the template's).  Against the femoral frame this axis gives, the cortex leans 2.3 deg posterior on
+#: the tune half, 2.2 on the held-out half and -3.4 on the 40 OAI maps (median; ``bench/anatomy.py``),
+#: and the image poses of all 126 real maps read 4.5 to 24.7 deg of flexion.  The femoral bow puts the
+#: mechanical axis (hip to knee) a few degrees anterior of it at the knee.
+FEMUR_ANTERIOR_CORTEX_TILT_DEG = 23.8
+_TILT = np.radians(FEMUR_ANTERIOR_CORTEX_TILT_DEG)
+#: Each bone's long axis, proximal, in the template frame (unit): Lenhart's
+#: tibial y axis (his model has the whole tibia), the femur's anterior cortex (above).
+LONG_AXES = {"tibia": np.array([0.0, 1.0, 0.0]), "femur": np.array([-np.sin(_TILT), np.cos(_TILT), 0.0])}
+
 
 @dataclass(frozen=True)
 class FibreEnd:
