@@ -1,13 +1,15 @@
-"""Simulation benchmark: CalculiX runs of the decks of real knees, smoke (to 15 deg) and full (to 90 deg).
+"""Simulation benchmark: CalculiX runs of the decks of real knees, smoke (to 15 deg), full (to 90 deg) and the
+knee bend (from anatomical extension to 90 deg and back, the load rising to 3.5 kN).
 
-    .venv/bin/python bench/simulate.py [MAPS_OR_GLOBS ...] [--full N] [--deformable] [--element-size 1.0] [--timeout 1800]
-                                       [--json F] [--threads T]
+    .venv/bin/python bench/simulate.py [MAPS_OR_GLOBS ...] [--full N] [--knee-bend N] [--deformable] [--element-size 1.0]
+                                       [--timeout 1800] [--json F] [--threads T]
 
 Default maps: the real label maps in ../shared/data/real (pymskt and oai_labels).  Each knee is meshed
 as the job does (bones, cartilage, anatomy, decks), then simulated: smoke on every knee, full flexion on
 the first N (listed).  Prints completion and physiology (:func:`kneemesh_core.fe.results.physiology`),
-time, the reason of each failure or miss, the contact figures at the end of the run, the femur's force
-balance and the plates' peak pressure over the run; one knee at a time (ccx on ``--threads``).
+time, the reason of each failure or miss, the contact figures at the end of the run (the knee bend's: back at
+extension; its deepest increment in the JSON), the femur's force balance and the plates' peak pressure over the
+run; one knee at a time (ccx on ``--threads``).
 ``--deformable`` adds the smoke run with deformable cartilage and sets its contact (plates' area and peak in
 extension and at 15 deg) beside the rigid model's, with the cartilage's peak stress and strains.
 """
@@ -31,8 +33,9 @@ REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 console = make_console()
 
 
-#: The runs of a knee: name -> (smoke, cartilage).
-RUNS = {"smoke": (True, "rigid"), "deformable": (True, "deformable"), "full": (False, "rigid")}
+#: The runs of a knee: name -> (smoke, cartilage, activity).
+RUNS = {"smoke": (True, "rigid", "flexion"), "deformable": (True, "deformable", "flexion"),
+        "full": (False, "rigid", "flexion"), "knee_bend": (False, "rigid", "knee_bend")}
 
 
 def one(path: str, element_size: float, kinds: list[str], timeout: float) -> dict:
@@ -51,10 +54,10 @@ def one(path: str, element_size: float, kinds: list[str], timeout: float) -> dic
             return {"knee": Path(path).name, "error": report.get("fe", {}).get("reason", "no decks")}
         out = {"knee": Path(path).name, "mesh_seconds": mesh_s, "seating": report["fe"]["seating"]}
         for kind in kinds:
-            smoke, cartilage = RUNS[kind]
+            smoke, cartilage, activity = RUNS[kind]
             try:
                 r = simulate(Path(tmp), smoke=smoke, timeout_s=timeout,
-                             load=replace(deck_load(Path(tmp) / FE_DIR), cartilage=cartilage))
+                             load=replace(deck_load(Path(tmp) / FE_DIR), cartilage=cartilage, activity=activity))
             except Exception as exc:  # noqa: BLE001 - the benchmark records every failure
                 out[kind] = {"completed": False, "reason": f"{type(exc).__name__}: {exc}", "seconds": 0.0}
                 continue
@@ -63,6 +66,7 @@ def one(path: str, element_size: float, kinds: list[str], timeout: float) -> dic
             out[kind] = {"completed": r["completed"], "reason": r["reason"], "seconds": r["seconds"],
                          "reached": r["reached_flexion_deg"], "last": last, "plate_peak_mpa": peak,
                          "first": next(iter(loaded(r["increments"])), {}),
+                         "deepest": max(loaded(r["increments"]), key=lambda x: x["flexion_deg"] or 0.0, default={}),
                          "physiology_reasons": r["physiology_reasons"]}
         return out
 
@@ -71,6 +75,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("maps", nargs="*")
     ap.add_argument("--full", type=int, default=0, help="also run the full flexion on the first N knees")
+    ap.add_argument("--knee-bend", type=int, default=0, help="also the knee bend on the first N knees")
     ap.add_argument("--deformable", action="store_true", help="also the smoke run with deformable cartilage")
     ap.add_argument("--element-size", type=float, default=1.0)
     ap.add_argument("--timeout", type=float, default=1800.0)
@@ -85,8 +90,8 @@ def main() -> None:
         str(p) for p in sorted((REAL / "pymskt" / "labels").glob("*.nrrd")) + sorted((REAL / "oai_labels").glob("*.nii.gz"))]
     rows = []
     for i, m in enumerate(maps):
-        r = one(m, args.element_size, ["smoke", *(["deformable"] if args.deformable else []), *(["full"] if i < args.full else [])],
-                args.timeout)
+        r = one(m, args.element_size, ["smoke", *(["deformable"] if args.deformable else []), *(["full"] if i < args.full else []),
+                                       *(["knee_bend"] if i < args.knee_bend else [])], args.timeout)
         rows.append(r)
         msg = r.get("error") or "; ".join(
             f"{k}: {'completed' if r[k]['completed'] else 'stopped (' + str(r[k]['reason']) + ')'} in {r[k]['seconds']:.0f} s"

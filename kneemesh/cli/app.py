@@ -78,6 +78,8 @@ MESH_FLAGS = {
     "medial_offset": (Optional[float], job_option("medial_offset", "--medial-offset")),
     "quadriceps": (Optional[float], job_option("quadriceps", "--quadriceps")),
     "flexion": (Optional[float], job_option("flexion", "--flexion")),
+    "activity": (Optional[str], job_option("activity", "--activity")),
+    "peak_load": (Optional[float], job_option("peak_load", "--peak-load")),
     "fe_cartilage": (Optional[str], job_option("fe_cartilage", "--fe-cartilage")),
     "force": (Optional[bool], job_option("force", "--force/--no-force")),
 }

@@ -104,34 +104,39 @@ def run_job(input_path: Path, out_dir: Path, request: JobRequest, workers: int) 
 @app.command()
 def simulate(
     job_dir: Path = typer.Argument(..., metavar="DIR", help="A job folder written by `kneemesh mesh` or `kneemesh run`."),
-    to: Optional[float] = typer.Option(None, "--to", min=1.0, max=120.0, help="Flexion to reach, deg (default: the deck's 90)."),
+    to: Optional[float] = typer.Option(None, "--to", min=1.0, max=120.0,
+                                       help="Flexion to reach, deg (default: the deck's 90): from the image pose, or "
+                                            "anatomical for the knee bend."),
     smoke: bool = typer.Option(False, "--smoke", help="A few increments to 15 deg: a quick proof that the deck runs."),
     timeout: float = typer.Option(1800.0, "--timeout", min=10.0, help="Stop ccx after this many seconds."),
     joint_load: Optional[float] = job_option("joint_load", "--joint-load"),
     medial_offset: Optional[float] = job_option("medial_offset", "--medial-offset"),
     quadriceps: Optional[float] = job_option("quadriceps", "--quadriceps"),
     fe_cartilage: Optional[str] = job_option("fe_cartilage", "--fe-cartilage"),
+    activity: Optional[str] = job_option("activity", "--activity"),
+    peak_load: Optional[float] = job_option("peak_load", "--peak-load"),
 ):
     """Run CalculiX on a job's decks (fe/knee_ccx.inp): contact forces, areas and pressures over flexion
     in fe/results.json and fe/contact.png (fe/smoke/ for --smoke); another load, medial offset, quadriceps
     force or cartilage than the decks' runs a model of its own in its own folder (fe/smoke_1500N_300N_10mm_rigid/,
-    say).  Deformable cartilage adds its stress and strain (cartilage_<tissue>.vtu) and takes minutes."""
+    say); a knee bend runs in fe/knee_bend_90_3500N/ (say).  Deformable cartilage adds its stress and strain
+    (cartilage_<tissue>.vtu) and takes minutes."""
     from dataclasses import replace
 
-    from kneemesh_core.fe.run import (FE_DIR, another_model, deck_load, run_folder, simulate as run_simulation,
-                                      simulation_entry)
+    from kneemesh_core.fe.run import FE_DIR, deck_load, simulate as run_simulation, simulation_entry
 
     with clear_errors():
         decks = deck_load(job_dir / FE_DIR)
         load = None
         asked = {"joint_load_n": joint_load, "medial_offset_mm": medial_offset, "quadriceps_n": quadriceps,
-                 "cartilage": fe_cartilage}
+                 "cartilage": fe_cartilage, "activity": activity, "peak_load_n": peak_load}
         if any(v is not None for v in asked.values()):
             request = JobRequest.build(joint_load=joint_load, medial_offset=medial_offset, quadriceps=quadriceps,
-                                       fe_cartilage=fe_cartilage)  # the bounds of a job's options
+                                       fe_cartilage=fe_cartilage, activity=activity, peak_load=peak_load)  # a job's bounds
             load = replace(decks or request.job_options().load, **{k: v for k, v in asked.items() if v is not None})
         r = run_simulation(job_dir, flexion_deg=to, smoke=smoke, timeout_s=timeout, load=load)
-    entry = simulation_entry(r, "smoke" if smoke else "flexion", run_folder(smoke, to, load if another_model(decks, load) else None))
+    entry = simulation_entry(r, "smoke" if smoke else (load or decks).activity if (load or decks) else "flexion",
+                             r["folder"])
     out.print(f"simulation: {entry['status']}: {STAGES[SIMULATE].summary(entry)}"
               + "".join(f"\n  {reason}" for reason in entry["reasons"]), highlight=False)
     if not r["completed"]:

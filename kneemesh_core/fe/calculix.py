@@ -13,8 +13,8 @@ import numpy as np
 from kneemesh_core import __version__
 from kneemesh_core.fe import inp
 from kneemesh_core.fe.model import Model
-from kneemesh_core.fe.physics import (DEFORMABLE_FIRST_INCREMENT_DEG, DEFORMABLE_MAX_INCREMENT_DEG, FIXED_BODY, FLEXION,
-                                      MOVING_BODIES)
+from kneemesh_core.fe.physics import (DEFORMABLE_MAX_INCREMENT_DEG, FIXED_BODY, FLEXION,
+                                      MOVING_BODIES, legs)
 
 #: ccx's equilibrium check: residual forces below 0.5 % of a reference force of 100 N (0.5 N, on a
 #: joint load of hundreds to thousands of N).  ccx's default reference is the average force over
@@ -64,7 +64,8 @@ def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str, s
         return (m.ref[body] if kind == "translation" else rot[body]), axis + 1
 
     w = ["*HEADING", f"KneeMesh {__version__} knee, CalculiX dialect: rigid bones, {m.load.cartilage} cartilage, "
-         f"{flex:g} deg flexion under {m.load.joint_load_n:g} N ({m.load.medial_offset_mm:g} mm medial)",
+         f"{flex:g} deg {'knee bend' if m.load.activity == 'knee_bend' else 'flexion'} under {m.load.joint_load_n:g} N "
+         f"({m.load.medial_offset_mm:g} mm medial)",
          f"*INCLUDE, INPUT={include}", "*NODE"]
     w += [f"{n}, " + ", ".join(f"{c:.6f}" for c in m.nodes[m.ref[b]]) for b, n in rot.items()]
     for b, n in rot.items():
@@ -102,20 +103,20 @@ def deck(m: Model, flexion_deg: float, max_increment_deg: float, include: str, s
               "** step 2: release them to settle under the loads",
               "*STEP, NLGEOM, INC=200", "*STATIC", "1.0, 1.0, 1e-6, 1.0", *CONTROLS, "*BOUNDARY, OP=NEW", *held,
               *outputs, "*END STEP"]
-    if flex <= 0:
-        return "\n".join(w) + "\n"
-    # the flexion step: flex the femur about X, the joint load held; whole increments (rounded up, so that
-    # ccx adds no sliver of an increment at the end); deformable cartilage's first one smaller, ccx growing
-    # the next ones
+    # the legs (physics.legs): each turns the femur about X, the joint load going linearly to the leg's (a *BOUNDARY
+    # and a *CLOAD without an amplitude ramp from the previous step's values in ccx's static steps); whole increments
+    # (rounded up, so that ccx adds no sliver of an increment at the end), deformable cartilage's smaller
     if len(solid):
         step = min(step, DEFORMABLE_MAX_INCREMENT_DEG)
-    n = int(np.ceil(flex / min(step, flex) - 1e-9))
-    dt = np.ceil(1e10 / n) / 1e10
-    first = min(dt, DEFORMABLE_FIRST_INCREMENT_DEG / flex) if len(solid) else dt
-    w += [f"** step {2 if start_pose is None else 3}: flex the femur {flex:g} deg about the flexion axis (X), at most "
-          f"{step:g} deg an increment",
-          "*STEP, NLGEOM, INC=1000", "*STATIC", f"{first:.10f}, 1.0, 1e-6, {dt:.10f}",
-          *CONTROLS,
-          "*BOUNDARY, AMPLITUDE=RAMP", f"{driven}, {dof}, {dof}, {np.radians(flex):.6f}",
-          *outputs, "*END STEP"]
+    at, load_n = 0.0, m.load.joint_load_n
+    for k, leg in enumerate(legs(m.load, flex, m.frame.get("image_flexion_deg")), start=2 if start_pose is None else 3):
+        turn = abs(leg.flexion_deg - at)
+        n = max(1, int(np.ceil(turn / min(step, turn) - 1e-9))) if turn > 0 else 1
+        dt = np.ceil(1e10 / n) / 1e10
+        loads = [] if leg.joint_load_n == load_n else ["*CLOAD", *inp.joint_load(m, dof_of, leg.joint_load_n)]
+        w += [f"** step {k}: {leg.name}: the femur to {leg.flexion_deg:g} deg about the flexion axis (X) from the image "
+              f"pose, at most {step:g} deg an increment, the joint load to {leg.joint_load_n:g} N",
+              "*STEP, NLGEOM, INC=1000", "*STATIC", f"{dt:.10f}, 1.0, 1e-6, {dt:.10f}", *CONTROLS,
+              "*BOUNDARY", f"{driven}, {dof}, {dof}, {np.radians(leg.flexion_deg):.6f}", *loads, *outputs, "*END STEP"]
+        at, load_n = leg.flexion_deg, leg.joint_load_n
     return "\n".join(w) + "\n"

@@ -23,7 +23,7 @@ from kneemesh_core.fe.model import PAIRS, Model, deck_rotation, deck_to_lps
 from kneemesh_core.fe.pressure_map import slave_surface
 from kneemesh_core.fe.physics import (CARTILAGE_DENSITY_T_MM3, CARTILAGE_ELEMENT, CARTILAGE_MODULUS_MPA, CARTILAGE_POISSON,
                                       CONFINED_MODULUS_MPA, DEFORMABLE_PENALTY, QUADRICEPS_SLACK_MM, TRANSITION_STRAIN,
-                                      ligament_table, neo_hooke, quadriceps_table, spring_stiffness)
+                                      legs, ligament_table, neo_hooke, quadriceps_table, spring_stiffness)
 from kneemesh_core.io.files import atomic_write_text
 from kneemesh_core.tissues import BONES, CARTILAGES
 
@@ -120,12 +120,14 @@ def cartilage_law(cartilage: str) -> list[str]:
 def joint_load_line(m: Model) -> dict:
     """Where the joint load acts, in the input's LPS frame: its force (N), a point of its line of action
     at the knee's centre height (mm; ``medial_offset_mm`` medial of the femur's seated reference node),
-    and the adduction moment it makes about that node (N m: about the anterior axis, deck Y)."""
+    and the adduction moment it makes about that node (N m: the whole moment, which lies along the tibia's
+    anterior axis, normal to the load and to the medial offset; the femur's anterior axis, deck Y, is the
+    image pose's flexion away from it)."""
     direction = deck_rotation(m.frame) @ -m.tibial_axis
     return {"force_n": m.load.joint_load_n, "direction_lps": np.round(direction, 6).tolist(),
             "medial_offset_mm": m.load.medial_offset_mm,
             "through_lps_mm": np.round(deck_to_lps(m.frame, m.nodes[m.ref["femur"]] + m.load.medial_offset_mm * m.medial), 3).tolist(),
-            "adduction_moment_nm": round(abs(float(inp.load_moment(m)[1])) / 1000.0, 3)}
+            "adduction_moment_nm": round(float(np.linalg.norm(inp.load_moment(m))) / 1000.0, 3)}
 
 
 def meta(m: Model, flexion_deg: float, start_pose: calculix.StartPose | None = None) -> dict:
@@ -140,7 +142,9 @@ def meta(m: Model, flexion_deg: float, start_pose: calculix.StartPose | None = N
         "deformable_elements": {p.name: [int(p.elements[0]), int(p.elements[-1])] for p in m.parts.values() if p.deformable},
         "joint_load_direction": (-m.tibial_axis).round(6).tolist(), "quadriceps_n": m.load.quadriceps_n,
         "joint_load": joint_load_line(m),
-        "flexion_deg": flexion_deg, "cartilage": m.load.cartilage, "contact_k": m.contact_k, "seating": m.seating,
+        "flexion_deg": flexion_deg, "activity": m.load.activity, "peak_load_n": m.load.peak_load_n,
+        "joint_load_schedule": load_schedule(m, flexion_deg, start_pose),
+        "cartilage": m.load.cartilage, "contact_k": m.contact_k, "seating": m.seating,
         "pairs": {name: f"{slave.upper()}_ARTICULAR" for name, (slave, _) in m.pairs.items()},
         "slave_elements": {name: [int(m.parts[slave].elements[0]), int(m.parts[slave].elements[-1])]
                            for name, (slave, _) in m.pairs.items()},
@@ -157,6 +161,14 @@ def meta(m: Model, flexion_deg: float, start_pose: calculix.StartPose | None = N
                     "femur_end": 0 if s.nodes[0] in femur_nodes else 1 if s.nodes[1] in femur_nodes else None}
                    for s in m.springs],
     }
+
+
+def load_schedule(m: Model, flexion_deg: float, start_pose: calculix.StartPose | None = None) -> list[list[float]]:
+    """The joint load over ccx's total time, [[time, N], ...]: the load case's from the seating on, then each
+    leg's (:func:`kneemesh_core.fe.physics.legs`: one step each, linear in between)."""
+    at = calculix.loaded_at(start_pose)
+    return [[at, m.load.joint_load_n]] + [[at + k, leg.joint_load_n] for k, leg in enumerate(
+        legs(m.load, flexion_deg, m.frame.get("image_flexion_deg")), start=1)]
 
 
 def _slave_surface(m: Model, tissue: str) -> dict:

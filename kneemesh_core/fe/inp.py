@@ -35,13 +35,14 @@ def set_lines(kind: str, name: str, ids) -> list[str]:
     return [f"*{kind}, {kind}={name}", *id_lines(ids)]
 
 
-def joint_load(m: Model, dof_of: DofOf) -> list[str]:
-    """``*CLOAD`` data lines: the joint load on the femur's reference node, ``joint_load_n`` down the
-    tibial axis, and its moment about that node where its line of action passes ``medial_offset_mm``
-    medial of it (:func:`load_moment`)."""
-    force = -m.load.joint_load_n * m.tibial_axis
+def joint_load(m: Model, dof_of: DofOf, load_n: float | None = None) -> list[str]:
+    """``*CLOAD`` data lines: the joint load on the femur's reference node, ``load_n`` (default the load
+    case's ``joint_load_n``) down the tibial axis, and its moment about that node where its line of action
+    passes ``medial_offset_mm`` medial of it (:func:`load_moment`)."""
+    load_n = m.load.joint_load_n if load_n is None else load_n
+    force = -load_n * m.tibial_axis
     lines = [f"{m.ref['femur']}, {dof}, {f:.3f}" for dof, f in enumerate(force, 1) if abs(f) > 1e-3]
-    for axis, moment in enumerate(load_moment(m)):
+    for axis, moment in enumerate(load_moment(m) * (load_n / m.load.joint_load_n if m.load.joint_load_n else 0.0)):
         if abs(moment) > 1e-3:
             node, dof = dof_of("femur", "rotation", axis)
             lines.append(f"{node}, {dof}, {moment:.3f}")

@@ -14,6 +14,8 @@ from typing import Literal
 
 import numpy as np
 
+from kneemesh_core.errors import KneeMeshError
+
 # -- cartilage ---------------------------------------------------------------------------------
 #: Cartilage modulus behind the contact stiffness, MPa: the instantaneous compressive modulus of human
 #: knee cartilage is 5-15 MPa; the paper's rigid-cartilage models use linear contact laws of this kind.
@@ -121,7 +123,10 @@ class LoadCase:
     frontal plane: on the femur's reference node with the moment ``joint_load_n`` x ``medial_offset_mm``
     (the knee adduction moment of a loaded limb, whose load passes medial of the knee); the quadriceps
     pulls the patella towards its origin up the femoral shaft; the femur is then flexed about the flexion
-    axis (deck X) to ``flexion_deg``, at most ``max_increment_deg`` an increment, the loads held."""
+    axis (deck X) to ``flexion_deg``, at most ``max_increment_deg`` an increment, the loads held.
+
+    ``activity`` ``knee_bend`` (:func:`legs`) goes from anatomical extension to ``flexion_deg`` of
+    anatomical flexion and back instead, the joint load rising to ``peak_load_n`` at the deepest flexion."""
 
     joint_load_n: float = 1000.0
     # 12 mm: the medial share of the tibial load at the end of seating met the paper's own simulations of
@@ -135,13 +140,54 @@ class LoadCase:
     cartilage: Literal["rigid", "deformable"] = "rigid"
     menisci: bool = True  # the meniscus surrogates (fe/menisci.py)
     prefemoral: bool = True  # the patella's rest above the trochlea (fe/prefemoral.py)
+    activity: Literal["flexion", "knee_bend"] = "flexion"
+    peak_load_n: float = 3500.0  # the knee bend's joint load at its deepest flexion
 
 
-#: Deformable cartilage's first and largest flexion increments, deg; ccx grows the increments in between.
-#: From the sample's seated equilibrium a first increment of 7.5 deg diverged (the femur's residual moment
-#: 16 N m, then 2e5 N m), one of 1.5 deg converged in 10 Newton iterations and the next ones in 6-7, up to
-#: 3.4 deg; one of 5.1 deg failed twice (8 and 5 iterations, 5 minutes) before ccx cut it back.
-DEFORMABLE_FIRST_INCREMENT_DEG, DEFORMABLE_MAX_INCREMENT_DEG = 1.5, 3.5
+@dataclass(frozen=True)
+class Leg:
+    """One step of a run after the seating: the femur turned to ``flexion_deg`` about the flexion axis
+    (from the image pose) while the joint load goes linearly to ``joint_load_n``."""
+
+    name: str
+    flexion_deg: float
+    joint_load_n: float
+
+
+#: The knee bend's load at its deepest flexion is ``peak_load_n``: telemetric knee implants measured
+#: 2.5-3.5 times body weight in a knee bend (Kutzner et al. 2010, the data behind the paper's activity,
+#: whose knees carried 0.9-1.4 kN at its first frame and 3.0-4.0 kN at its peak: paper_fe.md).
+ACTIVITIES = {"flexion": "from the image pose to the flexion asked for, the joint load held",
+              "knee_bend": "from anatomical extension to the flexion asked for (anatomical) and back, the joint load "
+                           "rising linearly with flexion to its peak at the deepest flexion and falling back"}
+
+
+def legs(load: LoadCase, flexion_deg: float, image_flexion_deg: float | None) -> list[Leg]:
+    """The steps of a run after the seating (at the image pose, under ``load.joint_load_n``).
+
+    ``flexion``: one leg to ``flexion_deg`` from the image pose.  ``knee_bend``: to anatomical extension
+    (the image pose is ``image_flexion_deg`` of anatomical flexion: Grood-Suntay, :mod:`kneemesh_core.anatomy`),
+    down to ``flexion_deg`` of anatomical flexion with the load rising to ``load.peak_load_n``, and back
+    to extension with it falling to ``load.joint_load_n``."""
+    if load.activity == "flexion":
+        return [Leg("flex", flexion_deg, load.joint_load_n)] if flexion_deg > 0 else []
+    if image_flexion_deg is None:
+        raise KneeMeshError("activity_needs_anatomy", "the knee bend starts at anatomical extension, and this knee's "
+                            "anatomy gave no flexion angle of its image pose (attachments.json angles_deg).")
+    extension = -image_flexion_deg
+    out = [Leg("to anatomical extension", extension, load.joint_load_n)] if abs(extension) >= 0.5 else []
+    return out + [Leg("bend", flexion_deg + extension, load.peak_load_n),
+                  Leg("back to extension", extension, load.joint_load_n)]
+
+
+#: Deformable cartilage's largest flexion increment, deg, every increment of a leg the same size.  From the sample's
+#: seated equilibrium a first increment of 7.5 deg diverged (the femur's residual moment 16 N m, then 2e5 N m), one
+#: of 1.5 deg converged in 10 Newton iterations and the next ones in 6-7, up to 3.4 deg; one of 5.1 deg failed twice
+#: (8 and 5 iterations, 5 minutes) before ccx cut it back.  Increments of 3 deg converged or not by chance (ccx's
+#: threads sum in varying order): a fresh-clone CI run's sixth one, 11.25 to 14.25 deg, diverged (residual 3.5e3 to
+#: 1e17 N) and ccx stopped on a singular matrix where the same deck converged alone.  A first increment smaller
+#: than the rest left ccx a sliver to end the step with (an increment more).
+DEFORMABLE_MAX_INCREMENT_DEG = 2.0
 
 #: The smoke run: flexion and largest increment, deg (two increments: the sample's run took 53 s of CPU
 #: in three of 5 deg, 43 s in two, with the same contact at 15 deg within 3 % of force).
@@ -229,7 +275,18 @@ MAX_BALANCE_ERROR = 0.05
 #: extension).  Tibial plates only: the meniscus surrogates are rigid rings whose edge concentrates
 #: pressure by construction.  The plates' peak over the run, MPa ...
 MAX_PLATE_PEAK_MPA = 20.0
+#: ... that limit under a joint load of this (N) or less; under a heavier one (an activity's peak) it grows with
+#: the load's square root, as the peak of a rounded body on an elastic foundation does (the paper's own models
+#: peaked at 21 / 29 / 46 MPa, 10th / 50th / 90th percentile, over its activity's 3.0-4.0 kN: paper_fe.md) ...
+PLATE_PEAK_REFERENCE_N = 1000.0
+
 #: ... each plate's share of the joint load in extension (the end of seating) ...
 MIN_PLATE_SHARE = 0.1
 #: ... and the plates' contact area in extension, mm^2.
 MIN_PLATES_AREA_MM2 = 100.0
+
+
+def plate_peak_limit_mpa(joint_load_n: float) -> float:
+    """The plates' physiological peak (MPa) under a joint load (N): :data:`MAX_PLATE_PEAK_MPA`, growing as the
+    load's square root above :data:`PLATE_PEAK_REFERENCE_N`."""
+    return MAX_PLATE_PEAK_MPA * float(np.sqrt(max(joint_load_n, PLATE_PEAK_REFERENCE_N) / PLATE_PEAK_REFERENCE_N))

@@ -17,8 +17,8 @@ import numpy as np
 
 from kneemesh_core.fe.cartilage_fields import read_frd, summaries, write_fields
 from kneemesh_core.fe.model import deck_to_lps
-from kneemesh_core.fe.physics import (MAX_BALANCE_ERROR, MAX_PLATE_PEAK_MPA, MAX_PRELOAD_STRAIN, MIN_PLATE_SHARE,
-                                      MIN_PLATES_AREA_MM2, ligament_force)
+from kneemesh_core.fe.physics import (MAX_BALANCE_ERROR, MAX_PRELOAD_STRAIN, MIN_PLATE_SHARE,
+                                      MIN_PLATES_AREA_MM2, ligament_force, plate_peak_limit_mpa)
 from kneemesh_core.fe.pressure_map import element_pressure, write_maps
 from kneemesh_core.io.files import atomic_write_json
 
@@ -136,6 +136,13 @@ def loaded(increments: list[dict]) -> list[dict]:
     return [r for r in increments if r.get("loaded", r["time"] >= LOADED_AT)]
 
 
+def joint_load_at(meta: dict, t: float) -> float:
+    """The joint load (N) at ccx's total time ``t``: whole from the first step on, then as the run's legs
+    take it (``joint_load_schedule``, :func:`kneemesh_core.fe.deck.load_schedule`; runs before it: held)."""
+    schedule = np.asarray(meta.get("joint_load_schedule") or [[0.0, meta["joint_load_n"]]], float)
+    return float(np.interp(t, schedule[:, 0], schedule[:, 1]))
+
+
 def summarise(dat: dict, meta: dict) -> list[dict]:
     """One entry per converged increment: flexion, per-pair contact, ligament forces by bundle, and
     the femur's force balance."""
@@ -148,9 +155,11 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
     image = meta["frame"].get("image_flexion_deg")
     for t in sorted(dat["contact"]):
         flexion = round(float(np.degrees(rots[t][meta["rot"]["femur"]][0])), 3) if t in rots else None
+        load_n = joint_load_at(meta, t)
         row: dict = {"time": t, "loaded": t >= meta.get("loaded_at", LOADED_AT), "flexion_deg": flexion,
-                     "anatomical_flexion_deg": None if flexion is None or image is None else round(image + flexion, 3)}
-        femur_force = meta["joint_load_n"] * np.asarray(meta["joint_load_direction"])  # whole from step 1 on
+                     "anatomical_flexion_deg": None if flexion is None or image is None else round(image + flexion, 3),
+                     "joint_load_n": round(load_n, 3)}
+        femur_force = load_n * np.asarray(meta["joint_load_direction"])
         pressures = dat["stress"].get(t, [])
         for name, slave in pairs.items():
             c = dat["contact"][t].get(slave, {"force": [0, 0, 0], "area": 0.0, "normal_force": 0.0})
@@ -187,7 +196,7 @@ def summarise(dat: dict, meta: dict) -> list[dict]:
                                                                            - ends[t][meta["patella_anchor"]])
         row["ligaments_n"] = {b: round(v, 2) for b, v in sorted(bundles.items())}
         row["femur_force_balance_n"] = np.round(femur_force, 3).tolist()
-        row["balance_error"] = round(float(np.linalg.norm(femur_force) / meta["joint_load_n"]), 4)
+        row["balance_error"] = round(float(np.linalg.norm(femur_force) / load_n), 4)
         out.append(row)
     return out
 
@@ -237,11 +246,14 @@ def physiology(increments: list[dict], load_n: float) -> list[str]:
     if not on:
         return []
     out = []
-    peak, side, at = plates_peak(on)
-    if peak > MAX_PLATE_PEAK_MPA:
+    over = [(plate_peak(r, k) / plate_peak_limit_mpa(r.get("joint_load_n", load_n)), plate_peak(r, k), k, r)
+            for r in on for k in ("medial", "lateral")]
+    ratio, peak, side, r = max(over, key=lambda o: o[0])
+    if ratio > 1.0:
         what = "contact pressure" if not on[0].get("cartilage") else "cartilage compression"
-        out.append(f"the tibial plates' peak {what} reaches {peak:.1f} MPa ({side}, at {at:.0f} deg; "
-                   f"physiological: below {MAX_PLATE_PEAK_MPA:g} MPa)")
+        load = r.get("joint_load_n", load_n)
+        out.append(f"the tibial plates' peak {what} reaches {peak:.1f} MPa ({side}, at {r['flexion_deg'] or 0:.0f} deg "
+                   f"under {load:.0f} N; physiological: below {plate_peak_limit_mpa(load):.3g} MPa)")
     first = on[0]
     for k in ("medial", "lateral"):
         if first[k]["force_n"] < MIN_PLATE_SHARE * load_n:
@@ -251,6 +263,12 @@ def physiology(increments: list[dict], load_n: float) -> list[str]:
     if area < MIN_PLATES_AREA_MM2:
         out.append(f"in extension the plates touch over {area:.0f} mm^2 (physiological: at least {MIN_PLATES_AREA_MM2:g} mm^2)")
     return out
+
+
+def flexion_key(meta: dict) -> str:
+    """The flexion a run's target means: from the image pose (``flexion_deg``), or for the knee bend, which starts
+    at anatomical extension, anatomical (``anatomical_flexion_deg``)."""
+    return "anatomical_flexion_deg" if meta.get("activity") == "knee_bend" else "flexion_deg"
 
 
 def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
@@ -264,7 +282,7 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
     invalid = first_invalid(increments)
     cut = next((i for i, r in enumerate(increments) if r["loaded"] and not physical(r)), len(increments))
     trusted = increments[:cut]
-    reached = max((r["flexion_deg"] or 0.0 for r in trusted), default=0.0)
+    reached = max((r[flexion_key(meta)] or 0.0 for r in trusted), default=0.0)
     completed = run.completed and invalid is None
     reason = run.reason or invalid
     seat = meta["seating"]
@@ -278,6 +296,8 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
     result = {"solver": run.version, "completed": completed, "reason": reason, "seconds": round(run.seconds, 2),
               "physiological": not off_physiology, "physiology_reasons": off_physiology,
               "applied_load_n": meta["joint_load_n"], "quadriceps_n": meta["quadriceps_n"],
+              "activity": meta.get("activity", "flexion"),
+              "peak_load_n": max(load for _, load in meta.get("joint_load_schedule") or [[0.0, meta["joint_load_n"]]]),
               "joint_load": meta.get("joint_load"),
               "target_flexion_deg": meta["flexion_deg"], "reached_flexion_deg": round(reached, 3),
               "contact_stiffness_n_mm3": meta["contact_k"], "seating": meta["seating"],
@@ -317,8 +337,9 @@ def plot(result: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    inc = [r for r in loaded(result["increments"]) if r["flexion_deg"] is not None]
-    x = [r["flexion_deg"] for r in inc]
+    along = flexion_key(result)
+    inc = [r for r in loaded(result["increments"]) if r[along] is not None]
+    x = [r[along] for r in inc]
     tissues = sorted({t for r in inc for t in r.get("cartilage", {})})  # deformable cartilage's own panels
     fig, axs = plt.subplots(3 if tissues else 2, 2, figsize=(10, 10.5 if tissues else 7), dpi=80)
     for name, style in zip(CONTACTS, ("-o", "-s", ":o", ":s", "-^")):
@@ -335,12 +356,12 @@ def plot(result: dict, path: Path) -> None:
     for tissue in tissues:
         at = [r for r in inc if tissue in r.get("cartilage", {})]
         peaks = [r["cartilage"][tissue] for r in at]
-        axs[2, 0].plot([r["flexion_deg"] for r in at], [p["peak_compressive_stress_mpa"] for p in peaks], "-o", ms=3,
+        axs[2, 0].plot([r[along] for r in at], [p["peak_compressive_stress_mpa"] for p in peaks], "-o", ms=3,
                        label=tissue)
-        axs[2, 0].plot([r["flexion_deg"] for r in at], [p["peak_von_mises_mpa"] for p in peaks], "--",
+        axs[2, 0].plot([r[along] for r in at], [p["peak_von_mises_mpa"] for p in peaks], "--",
                        color=axs[2, 0].lines[-1].get_color())
-        axs[2, 1].plot([r["flexion_deg"] for r in at], [p["peak_compressive_strain"] for p in peaks], "-o", ms=3, label=tissue)
-        axs[2, 1].plot([r["flexion_deg"] for r in at], [p["peak_shear_strain"] for p in peaks], "--",
+        axs[2, 1].plot([r[along] for r in at], [p["peak_compressive_strain"] for p in peaks], "-o", ms=3, label=tissue)
+        axs[2, 1].plot([r[along] for r in at], [p["peak_shear_strain"] for p in peaks], "--",
                        color=axs[2, 1].lines[-1].get_color())
     if tissues:
         axs[2, 0].set_ylabel("cartilage: peak compressive (solid)\nand von Mises (dashed) stress, MPa")
@@ -349,10 +370,12 @@ def plot(result: dict, path: Path) -> None:
     axs[0, 0].legend(fontsize=8)
     axs[1, 1].legend(fontsize=6, ncol=2)
     for ax in axs.ravel():
-        ax.set_xlabel("flexion, deg")
+        ax.set_xlabel("anatomical flexion, deg" if along != "flexion_deg" else "flexion from the image pose, deg")
         ax.grid(alpha=0.3)
     fig.suptitle(f"{result['solver']}: {'completed' if result['completed'] else 'stopped: ' + str(result['reason'])}; "
-                 f"joint load {result['applied_load_n']:g} N", fontsize=10)
+                 f"joint load {result['applied_load_n']:g} N"
+                 + (f" rising to {result['peak_load_n']:g} N" if result["peak_load_n"] != result["applied_load_n"] else ""),
+                 fontsize=10)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -102,17 +102,24 @@ def write_decks(out_dir: Path, load: LoadCase = LoadCase()) -> dict:
             "elements": {t: int(sum(len(p.elements) for p in m.parts.values() if p.element_type == t))
                          for t in sorted({p.element_type for p in m.parts.values()})}, "springs": len(m.springs),
             "contact_stiffness_n_mm3": m.contact_k, "seating": m.seating, "cartilage": load.cartilage,
-            "flexion_deg": load.flexion_deg, "joint_load_n": load.joint_load_n, "medial_offset_mm": load.medial_offset_mm}
+            "flexion_deg": load.flexion_deg, "activity": load.activity, "joint_load_n": load.joint_load_n,
+            "peak_load_n": load.peak_load_n if load.activity == "knee_bend" else load.joint_load_n,
+            "medial_offset_mm": load.medial_offset_mm}
 
 
-def run_folder(smoke: bool = False, flexion_deg: float | None = None, load: LoadCase | None = None) -> str:
-    """Where a run's deck and results lie, relative to the job folder: ``fe`` (the job's own decks), ``fe/smoke``
-    or ``fe/flexion_<deg>``, the name followed by ``_<joint load>N_<quadriceps>N_<medial offset>mm_<cartilage>``
-    for a load case other than the decks' (``load``)."""
+def run_folder(smoke: bool = False, flexion_deg: float | None = None, load: LoadCase | None = None,
+               activity: LoadCase | None = None) -> str:
+    """Where a run's deck and results lie, relative to the job folder: ``fe`` (the job's own decks), ``fe/smoke``,
+    ``fe/flexion_<deg>`` or, for another activity than the decks' (``activity``), ``fe/knee_bend_<deg>_<peak>N``,
+    the name followed by ``_<joint load>N_<quadriceps>N_<medial offset>mm_<cartilage>`` for a load case other than
+    the decks' (``load``)."""
+    flexion = flexion_deg if flexion_deg is not None else (load or activity or LoadCase()).flexion_deg
     if smoke:
         name = SMOKE_DIR
-    elif flexion_deg is not None or load is not None:
-        name = f"flexion_{flexion_deg if flexion_deg is not None else load.flexion_deg:g}"
+    elif activity is not None and activity.activity == "knee_bend":
+        name = f"knee_bend_{flexion:g}_{activity.peak_load_n:g}N"
+    elif flexion_deg is not None or load is not None or activity is not None:
+        name = f"flexion_{flexion:g}"
     else:
         return FE_DIR
     if load is not None:
@@ -127,18 +134,26 @@ def deck_load(fe: Path) -> LoadCase | None:
         return None
     meta = json.loads(meta_file.read_text())
     return LoadCase(joint_load_n=meta["joint_load_n"], quadriceps_n=meta["quadriceps_n"], flexion_deg=meta["flexion_deg"],
-                    cartilage=meta["cartilage"],
+                    cartilage=meta["cartilage"], activity=meta.get("activity", "flexion"),
+                    peak_load_n=meta.get("peak_load_n", LoadCase.peak_load_n),
                     medial_offset_mm=(meta.get("joint_load") or {}).get("medial_offset_mm", 0.0))  # (0: decks before it)
 
 
 #: What a run's model holds of its load case: another value of any needs a model of its own.
 MODEL_LOAD = ("joint_load_n", "quadriceps_n", "medial_offset_mm", "cartilage")
+#: What only a run's wrapper holds (the steps after the seating): another value needs a folder of its own.
+WRAPPER_LOAD = ("activity", "peak_load_n")
 
 
 def another_model(decks: LoadCase | None, load: LoadCase | None) -> bool:
     """Whether a run under ``load`` needs a model of its own beside the job's decks (another value of
     :data:`MODEL_LOAD`: they are in the shared model and its seating; the flexion is only the wrapper's)."""
     return decks is not None and load is not None and any(getattr(load, k) != getattr(decks, k) for k in MODEL_LOAD)
+
+
+def another_activity(decks: LoadCase | None, load: LoadCase | None) -> bool:
+    """Whether a run under ``load`` asks another activity (:data:`WRAPPER_LOAD`) than the job's decks run."""
+    return decks is not None and load is not None and any(getattr(load, k) != getattr(decks, k) for k in WRAPPER_LOAD)
 
 
 def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = False, timeout_s: float = 1800.0,
@@ -153,8 +168,12 @@ def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = Fals
         write_decks(out_dir, load or LoadCase())
         decks = deck_load(fe)
     load = load or decks
+    if smoke:  # a smoke run flexes from the image pose whatever the activity: a quick proof that the deck runs
+        load = replace(load, activity="flexion", peak_load_n=decks.peak_load_n)
+        decks = replace(decks, activity="flexion")
     own = another_model(decks, load)
-    folder = Path(out_dir) / run_folder(smoke, flexion_deg, load if own else None)
+    where = run_folder(smoke, flexion_deg, load if own else None, load if another_activity(decks, load) else None)
+    folder = Path(out_dir) / where
     if folder != fe:
         flex, step = ((SMOKE_FLEXION_DEG, SMOKE_INCREMENT_DEG) if smoke else
                       (load.flexion_deg if flexion_deg is None else flexion_deg, load.max_increment_deg))
@@ -169,7 +188,7 @@ def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = Fals
     meta = json.loads(meta_file.read_text())
     run = run_ccx(folder, Path(deck.CCX_FILE).stem, timeout_s,
                   DEFORMABLE_STALL_CPU_S if meta["cartilage"] == "deformable" else STALL_CPU_S)
-    return write_results(folder, run, meta, folder / "knee_ccx.dat")
+    return {**write_results(folder, run, meta, folder / "knee_ccx.dat"), "folder": where}
 
 
 def simulation_entry(results: dict, kind: str, folder: str) -> dict:

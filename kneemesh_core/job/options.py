@@ -36,7 +36,7 @@ class JobOptions:
     only: str = "all"
     stl: bool = False
     bundle: bool = False
-    simulate: str = "none"  # or "smoke" (to 15 deg) or "full" (to 90 deg): a CalculiX run of the decks
+    simulate: str = "none"  # or "smoke" (to 15 deg) or "full" (the load case's activity): a CalculiX run of the decks
     load: LoadCase = LoadCase()  # the decks' loads, flexion and cartilage (fe/physics.py)
     force: bool = False  # mesh an image's labels although the segmentation fails its plausibility checks
     surface: SurfaceOptions = SurfaceOptions()
@@ -89,7 +89,7 @@ class JobRequest(BaseModel):
     bone_edge: float = Field(3.0, ge=0.5, le=10.0, allow_inf_nan=False, description="Target bone triangle edge away from the cartilage, mm (under it: the element size).")
     stl: bool = Field(False, description="Also write the bone shells as .stl.")
     simulate: Literal["none", "smoke", "full"] = Field(
-        "none", description="Run the CalculiX deck: smoke (to 15 deg of flexion) or full (to 90 deg); none: write the decks only.")
+        "none", description="Run the CalculiX deck: smoke (to 15 deg of flexion) or full (the activity, to 90 deg); none: write the decks only.")
     force: bool = Field(False, description="For an image: mesh its labels even where the segmentation fails its "
                                            "plausibility checks (the knee is then review); otherwise the job stops "
                                            "before meshing, with the reasons.")
@@ -102,7 +102,14 @@ class JobRequest(BaseModel):
     quadriceps: float = Field(300.0, ge=0.0, le=3000.0, allow_inf_nan=False,
                               description="The quadriceps force on the patella at its initial length, N.")
     flexion: float = Field(90.0, ge=1.0, le=120.0, allow_inf_nan=False,
-                           description="The flexion a full run reaches from the image pose, deg.")
+                           description="The flexion a full run reaches, deg: from the image pose (activity flexion) or "
+                                       "anatomical (knee_bend).")
+    activity: Literal["flexion", "knee_bend"] = Field(
+        "flexion", description="What a full run does: flexion (from the image pose to the flexion asked for, the joint "
+                               "load held) or knee_bend (from anatomical extension to the flexion asked for and back, "
+                               "the joint load rising to peak_load at the deepest flexion, as in the paper's activity).")
+    peak_load: float = Field(LoadCase.peak_load_n, ge=0.0, le=8000.0, allow_inf_nan=False,
+                             description="The knee bend's joint load at its deepest flexion, N.")
     fe_cartilage: Literal["rigid", "deformable"] = Field(
         "rigid", description="Cartilage in the decks: rigid (the paper's choice; contact stiffness from its layers; "
                  "seconds a run) or deformable (solid neo-Hookean hexahedra; stress and strain reported; minutes a run).")
@@ -123,8 +130,8 @@ class JobRequest(BaseModel):
             input_type=self.input_type, model=self.model, preset=self.preset, labels=self.labels, side=self.side,
             only=self.only, stl=self.stl, bundle=bundle, simulate=self.simulate, force=self.force,
             load=LoadCase(joint_load_n=self.joint_load, medial_offset_mm=self.medial_offset, quadriceps_n=self.quadriceps,
-                          flexion_deg=self.flexion,
-                          cartilage=self.fe_cartilage),
+                          flexion_deg=self.flexion, cartilage=self.fe_cartilage, activity=self.activity,
+                          peak_load_n=self.peak_load),
             surface=SurfaceOptions(bone_edge_mm=self.bone_edge, articular_edge_mm=min(self.element_size, self.bone_edge)),
             hex=HexOptions(element_size=self.element_size, layers=self.layers),
             blend=BlendOptions(angle_deg=self.blend_angle) if self.blend else None)

@@ -319,14 +319,18 @@ def write_decks(step: Step) -> dict:
 
 
 def run_simulation(step: Step) -> dict:
-    """CalculiX on the decks (smoke: to 15 deg; full: to 90 deg); ``fe/results.json`` and
+    """CalculiX on the decks (smoke: to 15 deg; full: the decks' activity, to 90 deg); ``fe/results.json`` and
     ``fe/contact.png``.  Never raises: a failed simulation is its entry, the meshes and decks stay."""
-    from kneemesh_core.fe.run import run_folder, simulate, simulation_entry
+    from kneemesh_core.fe.run import simulate, simulation_entry
 
     opts = step.options
     smoke = opts.simulate == "smoke"
-    return _guarded(lambda: simulation_entry(simulate(step.out, smoke=smoke, load=opts.load),
-                                             opts.simulate, run_folder(smoke)))
+
+    def run() -> dict:
+        r = simulate(step.out, smoke=smoke, load=opts.load)
+        return simulation_entry(r, opts.simulate, r["folder"])
+
+    return _guarded(run)
 
 
 def bundle_outputs(step: Step) -> dict:
