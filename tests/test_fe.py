@@ -345,6 +345,17 @@ def test_smoke_simulation_of_a_real_knee_balances_with_physiological_contact(kne
     assert medial > first["lateral"]["force_n"] + first["lateral_meniscus"]["force_n"], first
 
 
+def test_the_bundle_holds_the_runs_results_for_a_lab_to_inspect(knee):
+    """What a lab opens in ParaView or reads again comes in the bundle: the smoke run's results, contact figure,
+    per-face pressure maps and ccx's own result file (.frd), beside the decks."""
+    from kneemesh_core.job.outputs import bundle
+
+    out, _ = knee
+    names = {a["name"] for a in bundle(out)}
+    assert {"fe/knee_ccx.inp", "fe/knee_abaqus.inp", "fe/model.json", "fe/smoke/results.json", "fe/smoke/contact.png",
+            "fe/smoke/knee_ccx.frd", "fe/smoke/pressure_medial_tibial_cartilage.vtu"} <= names, sorted(names)
+
+
 def test_a_run_whose_femur_loses_the_tibia_is_not_completed():
     """ccx may 'converge' after the femur slid off the tibia: such increments are not physics."""
     from kneemesh_core.fe.results import first_invalid

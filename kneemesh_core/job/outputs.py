@@ -33,7 +33,7 @@ WORK_DIR = "work"
 #: What the bundle carries: labels used, meshes, surfaces, attachment sites and frames, the decks and
 #: any simulation's results and contact pressure maps (not the solver's raw output), the report.
 BUNDLED = (LABELS_FILE, JOB_FILE, REPORT_FILE, ATTACHMENTS_FILE, ATTACHMENTS_FIGURE, f"{MESHES_DIR}/*", f"{SURFACES_DIR}/*",
-           *(f"fe/{sub}*.{ext}" for sub in ("", "smoke/") for ext in ("inp", "json", "png", "vtu")))
+           *(f"fe/{sub}*.{ext}" for sub in ("", "smoke/") for ext in ("inp", "json", "png", "vtu", "frd")))
 
 
 def utc_now() -> str:
