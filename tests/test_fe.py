@@ -556,7 +556,7 @@ def test_the_knee_bend_starts_at_anatomical_extension_and_carries_its_peak_load_
     from kneemesh_core.errors import KneeMeshError
     from kneemesh_core.fe import abaqus
     from kneemesh_core.fe.physics import legs
-    from kneemesh_core.fe.results import joint_load_at
+    from kneemesh_core.fe.results import activity_start, joint_load_at
     from kneemesh_core.fe.run import deck_load, read_model
     from kneemesh_core.job import JobRequest
 
@@ -588,6 +588,7 @@ def test_the_knee_bend_starts_at_anatomical_extension_and_carries_its_peak_load_
     assert schedule == [[1.0, 1000.0], [2.0, 1000.0], [3.0, 3000.0], [4.0, 1000.0]]
     assert joint_load_at(meta, 0.5) == 1000.0 and joint_load_at(meta, 2.5) == pytest.approx(2000.0)
     assert joint_load_at(meta, 3.75) == pytest.approx(1500.0)
+    assert activity_start(meta) == 2.0  # its flexion counts once at extension, not from the flexed image pose
     abq = abaqus.deck(model, deck.MODEL_FILE)
     assert "*STEP, NAME=KNEE_BEND" in abq
     flex = [float(v) for v in abq.split("*AMPLITUDE, NAME=FLEXION, DEFINITION=SMOOTH STEP, TIME=TOTAL TIME\n")[1]

@@ -271,6 +271,15 @@ def flexion_key(meta: dict) -> str:
     return "anatomical_flexion_deg" if meta.get("activity") == "knee_bend" else "flexion_deg"
 
 
+def activity_start(meta: dict) -> float:
+    """ccx's total time at which a run's flexion counts towards its target: from the start, or for the knee bend
+    once it has come to anatomical extension (the end of the leg before its bend: ``joint_load_schedule`` holds
+    the load at the end of each leg, :func:`kneemesh_core.fe.physics.legs` ending with the bend and the way back);
+    before it the knee stands in the image pose, flexed by an angle that is not the bend's."""
+    schedule = meta.get("joint_load_schedule") or []
+    return schedule[-3][0] if meta.get("activity") == "knee_bend" and len(schedule) >= 3 else 0.0
+
+
 def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
     """``results.json`` (and ``contact.png``, and the pressure maps of :mod:`.pressure_map`) in ``folder``
     from a run and its .dat file.  ``completed``
@@ -282,7 +291,7 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
     invalid = first_invalid(increments)
     cut = next((i for i, r in enumerate(increments) if r["loaded"] and not physical(r)), len(increments))
     trusted = increments[:cut]
-    reached = max((r[flexion_key(meta)] or 0.0 for r in trusted), default=0.0)
+    reached = max((r[flexion_key(meta)] or 0.0 for r in trusted if r["time"] >= activity_start(meta)), default=0.0)
     completed = run.completed and invalid is None
     reason = run.reason or invalid
     seat = meta["seating"]

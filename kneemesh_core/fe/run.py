@@ -201,7 +201,8 @@ def simulation_entry(results: dict, kind: str, folder: str) -> dict:
     reasons = ([] if r["completed"] else [f"stopped at {r['reached_flexion_deg']:g} of {r['target_flexion_deg']:g} deg: "
                                           f"{r['reason']}"]) + r["physiology_reasons"]
     status = "failed" if not r["completed"] and r["reached_flexion_deg"] <= 0 else "review" if reasons else "ok"
-    return {"status": status, "reasons": reasons, "kind": kind, "completed": r["completed"],
+    return {"status": status, "reasons": reasons, "kind": kind, "activity": r.get("activity", "flexion"),
+            "completed": r["completed"],
             "physiological": r["physiological"], "reason": r["reason"], "solver": r["solver"],
             "solver_seconds": r["seconds"], "reached_flexion_deg": r["reached_flexion_deg"],
             "target_flexion_deg": r["target_flexion_deg"],

@@ -145,7 +145,10 @@ def _simulation_line(sim: dict) -> str:
     line = (f"{sim['kind']}, {sim['solver']}, {sim['solver_seconds']:.0f} s: "
             f"{'completed' if sim['completed'] else 'stopped: ' + str(sim['reason'])} at "
             f"{sim['reached_flexion_deg']:.1f} of {sim['target_flexion_deg']:.0f} deg")
-    if final.get("anatomical_flexion_deg") is not None:
+    if sim.get("activity") == "knee_bend":
+        line += " of anatomical flexion" + (f", back at {final['anatomical_flexion_deg']:.1f} deg"
+                                            if final.get("anatomical_flexion_deg") is not None else "")
+    elif final.get("anatomical_flexion_deg") is not None:
         line += f" from the image pose (anatomically {final['anatomical_flexion_deg']:.1f} deg)"
     if final.get("medial"):
         line += "; " + ", ".join(f"{k} {final[k]['force_n']:.0f} N on {final[k]['area_mm2']:.0f} mm^2, peak "
