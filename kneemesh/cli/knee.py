@@ -135,8 +135,7 @@ def simulate(
                                        fe_cartilage=fe_cartilage, activity=activity, peak_load=peak_load)  # a job's bounds
             load = replace(decks or request.job_options().load, **{k: v for k, v in asked.items() if v is not None})
         r = run_simulation(job_dir, flexion_deg=to, smoke=smoke, timeout_s=timeout, load=load)
-    entry = simulation_entry(r, "smoke" if smoke else (load or decks).activity if (load or decks) else "flexion",
-                             r["folder"])
+    entry = simulation_entry(r, "smoke" if smoke else r["activity"], r["folder"])
     out.print(f"simulation: {entry['status']}: {STAGES[SIMULATE].summary(entry)}"
               + "".join(f"\n  {reason}" for reason in entry["reasons"]), highlight=False)
     if not r["completed"]:

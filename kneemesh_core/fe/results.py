@@ -291,7 +291,8 @@ def write_results(folder: Path, run, meta: dict, dat_path: Path) -> dict:
     invalid = first_invalid(increments)
     cut = next((i for i, r in enumerate(increments) if r["loaded"] and not physical(r)), len(increments))
     trusted = increments[:cut]
-    reached = max((r[flexion_key(meta)] or 0.0 for r in trusted if r["time"] >= activity_start(meta)), default=0.0)
+    key, start = flexion_key(meta), activity_start(meta)
+    reached = max((r[key] or 0.0 for r in trusted if r["time"] >= start), default=0.0)
     completed = run.completed and invalid is None
     reason = run.reason or invalid
     seat = meta["seating"]

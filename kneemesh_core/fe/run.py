@@ -108,17 +108,17 @@ def write_decks(out_dir: Path, load: LoadCase = LoadCase()) -> dict:
 
 
 def run_folder(smoke: bool = False, flexion_deg: float | None = None, load: LoadCase | None = None,
-               activity: LoadCase | None = None) -> str:
+               activity_load: LoadCase | None = None) -> str:
     """Where a run's deck and results lie, relative to the job folder: ``fe`` (the job's own decks), ``fe/smoke``,
-    ``fe/flexion_<deg>`` or, for another activity than the decks' (``activity``), ``fe/knee_bend_<deg>_<peak>N``,
-    the name followed by ``_<joint load>N_<quadriceps>N_<medial offset>mm_<cartilage>`` for a load case other than
-    the decks' (``load``)."""
-    flexion = flexion_deg if flexion_deg is not None else (load or activity or LoadCase()).flexion_deg
+    ``fe/flexion_<deg>`` or, for a load case with another activity than the decks' (``activity_load``),
+    ``fe/knee_bend_<deg>_<peak>N``, the name followed by ``_<joint load>N_<quadriceps>N_<medial offset>mm_<cartilage>``
+    for a load case with another model than the decks' (``load``)."""
+    flexion = flexion_deg if flexion_deg is not None else (load or activity_load or LoadCase()).flexion_deg
     if smoke:
         name = SMOKE_DIR
-    elif activity is not None and activity.activity == "knee_bend":
-        name = f"knee_bend_{flexion:g}_{activity.peak_load_n:g}N"
-    elif flexion_deg is not None or load is not None or activity is not None:
+    elif activity_load is not None and activity_load.activity == "knee_bend":
+        name = f"knee_bend_{flexion:g}_{activity_load.peak_load_n:g}N"
+    elif flexion_deg is not None or load is not None or activity_load is not None:
         name = f"flexion_{flexion:g}"
     else:
         return FE_DIR
@@ -145,15 +145,11 @@ MODEL_LOAD = ("joint_load_n", "quadriceps_n", "medial_offset_mm", "cartilage")
 WRAPPER_LOAD = ("activity", "peak_load_n")
 
 
-def another_model(decks: LoadCase | None, load: LoadCase | None) -> bool:
-    """Whether a run under ``load`` needs a model of its own beside the job's decks (another value of
-    :data:`MODEL_LOAD`: they are in the shared model and its seating; the flexion is only the wrapper's)."""
-    return decks is not None and load is not None and any(getattr(load, k) != getattr(decks, k) for k in MODEL_LOAD)
-
-
-def another_activity(decks: LoadCase | None, load: LoadCase | None) -> bool:
-    """Whether a run under ``load`` asks another activity (:data:`WRAPPER_LOAD`) than the job's decks run."""
-    return decks is not None and load is not None and any(getattr(load, k) != getattr(decks, k) for k in WRAPPER_LOAD)
+def differs(decks: LoadCase | None, load: LoadCase | None, fields: tuple[str, ...]) -> bool:
+    """Whether a run under ``load`` asks another value of any of ``fields`` than the job's decks hold:
+    :data:`MODEL_LOAD` (a model of its own beside the decks: they are in the shared model and its seating)
+    or :data:`WRAPPER_LOAD` (a wrapper of its own)."""
+    return decks is not None and load is not None and any(getattr(load, k) != getattr(decks, k) for k in fields)
 
 
 def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = False, timeout_s: float = 1800.0,
@@ -171,8 +167,8 @@ def simulate(out_dir: Path, flexion_deg: float | None = None, smoke: bool = Fals
     if smoke:  # a smoke run flexes from the image pose whatever the activity: a quick proof that the deck runs
         load = replace(load, activity="flexion", peak_load_n=decks.peak_load_n)
         decks = replace(decks, activity="flexion")
-    own = another_model(decks, load)
-    where = run_folder(smoke, flexion_deg, load if own else None, load if another_activity(decks, load) else None)
+    own = differs(decks, load, MODEL_LOAD)
+    where = run_folder(smoke, flexion_deg, load if own else None, load if differs(decks, load, WRAPPER_LOAD) else None)
     folder = Path(out_dir) / where
     if folder != fe:
         flex, step = ((SMOKE_FLEXION_DEG, SMOKE_INCREMENT_DEG) if smoke else

@@ -31,7 +31,7 @@ SURFACES_DIR = "surfaces"
 #: What one step leaves for a later one and nobody else reads: a cartilage's unblended mesh
 WORK_DIR = "work"
 #: What the bundle carries: labels used, meshes, surfaces, attachment sites and frames, the decks and
-#: any simulation's results and contact pressure maps (not the solver's raw output), the report.
+#: any simulation's results, contact pressure maps and ccx's result file (.frd; not its .dat log), the report.
 BUNDLED = (LABELS_FILE, JOB_FILE, REPORT_FILE, ATTACHMENTS_FILE, ATTACHMENTS_FIGURE, f"{MESHES_DIR}/*", f"{SURFACES_DIR}/*",
            *(f"fe/{sub}*.{ext}" for sub in ("", "smoke/") for ext in ("inp", "json", "png", "vtu", "frd")))
 
