@@ -7,12 +7,13 @@ import json
 
 import numpy as np
 import pytest
+import pyvista as pv
 import SimpleITK as sitk
 
 from conftest import OAI, PYMSKT_LEFT, REAL, SAMPLE, mirror_lr, real
 from kneemesh_core import KneeMeshError
 from kneemesh_core.anatomy import template as tmpl
-from kneemesh_core.anatomy.attachments import place, rule_violations
+from kneemesh_core.anatomy.attachments import extension_motion, place, rule_violations
 from kneemesh_core.anatomy.frames import CoarseAxes, Frame, grood_suntay
 from kneemesh_core.anatomy.register import Similarity, register
 from kneemesh_core.io import Volume, read_label_map, voxel_to_lps
@@ -144,6 +145,33 @@ def test_the_flexion_follows_the_tibia_swung_about_the_flexion_axis_whatever_the
     # registration to a few centimetres of shaft that the anatomical flexion of #46 has to remove)
     assert b["flexion"] - a["flexion"] == pytest.approx(20.0, abs=5.5), (a, b)
     assert b["varus"] == pytest.approx(a["varus"], abs=2.0) and b["internal_rotation"] == pytest.approx(a["internal_rotation"], abs=3.0)
+    check_extension(before, bones["femur"], plates)
+
+
+def check_extension(anatomy, femur, plates) -> None:
+    """The tibia at the knee's anatomical extension (:func:`extension_motion`): its frame moved reads 0 deg of
+    flexion with the image's varus and rotation, its tighter plate keeps its image clearance from the femur
+    and the other at least its own, and a tibiofemoral fibre's slack length is its length there over
+    1 + its reference strain (a patellar fibre's: its image length's)."""
+    tibia, femur_frame = anatomy.frames["tibia"], anatomy.frames["femur"]
+    motion = extension_motion(femur_frame, tibia, femur, [p[::20] for p in plates])
+    r = motion.rotation
+    moved = Frame(motion.apply(tibia.origin), r @ tibia.lateral, r @ tibia.anterior, r @ tibia.proximal, {})
+    image, extended = grood_suntay(femur_frame, tibia), grood_suntay(femur_frame, moved)
+    assert extended["flexion"] == pytest.approx(0.0, abs=0.05), extended
+    assert extended["varus"] == pytest.approx(image["varus"], abs=0.05)
+    # (the rotation is read between the femur's anterior axis and the tibia's, each projected across the tibia's
+    # long axis, which a turn about the femur's flexion axis moves by a fraction of a degree under varus)
+    assert extended["internal_rotation"] == pytest.approx(image["internal_rotation"], abs=0.5)
+    clear = [float(np.min(pv.PolyData(motion.apply(p[::20])).compute_implicit_distance(femur)["implicit_distance"]))
+             for p in plates]
+    gain = np.subtract(clear, motion.facts["clearance_mm"])
+    assert gain.min() == pytest.approx(0.0, abs=0.1) and motion.facts["tibia_moved_distally_mm"] != 0.0, (gain, motion.facts)
+    for f in anatomy.document["fibres"]:
+        bones = {e["bone"] for e in f["ends"]}
+        length = f["extension_length_mm"] if bones == {"femur", "tibia"} else f["length_mm"]
+        assert ("extension_length_mm" in f) == (bones == {"femur", "tibia"}), f["name"]
+        assert f["slack_length_mm"] == pytest.approx(length / (1 + f["reference_strain"]), abs=0.01), f["name"]
 
 
 def test_a_wrong_side_is_caught_by_the_shape_and_sites_off_their_anatomy_by_the_rules():

@@ -544,6 +544,26 @@ def test_a_load_option_changes_the_load_the_deck_applies(knee):
 
 
 
+def test_in_anatomical_extension_the_plateau_carries_the_joint_load_not_the_ligaments_pull(knee):
+    """The ligaments' slack lengths are set in anatomical extension (the reference pose of their strains), not in
+    the image pose, 24 deg flexed on the sample: brought to extension under 1 kN the knee's plateau carries
+    about the joint load (1.1 kN on the sample; set in the image pose, 3.5 kN: its collaterals and posterior
+    capsule pulled the femur onto the plateau at 300-960 N each), and the run balances."""
+    from dataclasses import replace
+
+    from kneemesh_core.fe.results import tibiofemoral_n
+    from kneemesh_core.fe.run import deck_load, simulate
+
+    out, _ = knee
+    load = replace(deck_load(out / "fe"), activity="knee_bend", peak_load_n=LoadCase().joint_load_n, flexion_deg=5.0)
+    r = simulate(out, load=load)
+    assert r["completed"] and r["reached_flexion_deg"] == pytest.approx(5.0, abs=0.01), r["reason"]
+    extension = next(inc for inc in r["increments"] if inc["time"] == pytest.approx(2.0))
+    assert extension["anatomical_flexion_deg"] == pytest.approx(0.0, abs=0.01)
+    assert extension["balance_error"] < MAX_BALANCE_ERROR, extension
+    assert 0.85 * load.joint_load_n < tibiofemoral_n(extension) < 1.3 * load.joint_load_n, tibiofemoral_n(extension)
+
+
 def test_the_knee_bend_starts_at_anatomical_extension_and_carries_its_peak_load_at_its_deepest_flexion(knee, tmp_path):
     """The paper's activity as an option (JobRequest ``activity``, ``peak_load``): after the seating at the image
     pose, both dialects turn the femur to anatomical extension (the image pose's flexion back), bend it to the

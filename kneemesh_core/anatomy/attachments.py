@@ -7,16 +7,27 @@ that Lenhart's model puts on the fibula (LCL, popliteofibular ligament) move wit
 stay on the registered template fibula (the job meshes no fibula): their ``node`` is null.
 
 Slack lengths come from each fibre's **reference strain**: Lenhart's model states each fibre's
-strain in its reference (extended) pose (``ReferenceStrain`` in its SIMM file), and the subject's
-fibre is given that strain in the image pose, ``L0 = L / (1 + e_ref)`` along the straight line
-between its ends (the calibration of Lenhart 2015 and OpenSim JAM), plus, for the ITB, the part of
-its path beyond the knee (``path_beyond_mm``: to the pelvis, scaled with the femur), which the
-knee's motion leaves unchanged but which sets how much strain a millimetre of it is.  Scaling the template's slack
-length with the bones instead left a knee whose patella sits higher than the template's with its
-patellar tendon 30-40 % stretched in the image pose (OAI 9357383: the seated patella was pulled
-14 mm down and off the trochlea).  This assumes the image pose is near extension, as in OAI's
-DESS (the 126 real maps read 4.5-24.7 deg of anatomical flexion, median 13: ``angles_deg``); a fibre with
-an unplaced end keeps the scaled template slack length.
+strain in its reference pose, full extension (``ReferenceStrain`` in its SIMM file), and the
+subject's fibre is given that strain in the same pose, ``L0 = L / (1 + e_ref)`` along the straight
+line between its ends (the calibration of Lenhart 2015 and OpenSim JAM), plus, for the ITB, the part
+of its path beyond the knee (``path_beyond_mm``: to the pelvis, scaled with the femur), which the
+knee's motion leaves unchanged but which sets how much strain a millimetre of it is.  Scaling the
+template's slack length with the bones instead left a knee whose patella sits higher than the
+template's with its patellar tendon 30-40 % stretched in the image pose (OAI 9357383: the seated
+patella was pulled 14 mm down and off the trochlea).
+
+The image is not that pose: OAI's knees lie in a coil at 4.5-24.7 deg of anatomical flexion (the
+126 real maps, median 13: ``angles_deg``), where a fibre between femur and tibia is shorter or
+longer than in extension by up to a few millimetres, a strain of several per cent on a 30 mm
+ligament.  Given the image pose's reference strains, the sample knee (24 deg flexed in its image)
+brought to extension under 1 kN carried 3.5 kN through its plateau, its collaterals and posterior
+capsule at 300-960 N; given them in extension, 1.06 kN.  So
+the **tibiofemoral fibres** (femur to tibia or fibula) are measured with the tibia at the knee's
+anatomical extension (:func:`extension_motion`: the image pose's flexion taken out about the
+femur's flexion axis, varus and rotation kept, the tibia moved along its axis to the cartilage
+clearance it has in the image); the patellar fibres (patellar tendon, patellofemoral ligaments)
+keep the image pose, since where the patella sits in extension is what the quadriceps decides.  A
+fibre with an unplaced end keeps the scaled template slack length.
 
 A registration whose residual is implausible (the bone is not what the template expects: a
 cropped or broken segmentation, a foreign object) is reported, and its sites are flagged.
@@ -49,6 +60,8 @@ LONG_AXIS_SOURCE = {"femur": "the registered template's distal anterior femoral 
 #: flexion moves with the sampling by a few degrees (OAI 9031930_00m: -8 to -13 deg over 2-3 mm samplings of
 #: one shell): the registration of a template tibia to the few centimetres of shaft in view is that loose.
 FIT_SPACING_MM = 3.0
+#: At most this many points of each tibial plate measure its clearance from the femur (:func:`extension_motion`).
+CLEARANCE_POINTS = 4000
 
 
 @dataclass
@@ -85,9 +98,12 @@ def place(bones: dict[str, pv.PolyData], side: str, plates: tuple[np.ndarray, np
     trees = {b: cKDTree(v) for b, v in vertices.items()}  # a site's node: the nearest vertex of the shell
     femur_scale = regs["femur"].similarity.scale if "femur" in regs else 1.0  # hip to knee scales with the femur
     unplaced: list[dict] = []
-    fibres = [_fibre(fibre, regs, bones, trees, femur_scale, unplaced_bones, unplaced) for fibre in template.fibres]
-    residuals = {b: round(r.rms_mm, 3) for b, r in regs.items()}
     angles = grood_suntay(frames["femur"], frames["tibia"])
+    extension = extension_motion(frames["femur"], frames["tibia"], bones["femur"],
+                                 _clearance_points(plates, vertices["tibia"]))
+    fibres = [_fibre(fibre, regs, bones, trees, femur_scale, extension, unplaced_bones, unplaced)
+              for fibre in template.fibres]
+    residuals = {b: round(r.rms_mm, 3) for b, r in regs.items()}
     violations = rule_violations(fibres, frames)
     reasons = _reasons(residuals, unplaced_bones, unplaced, shape, side, violations)
     document = {
@@ -95,6 +111,7 @@ def place(bones: dict[str, pv.PolyData], side: str, plates: tuple[np.ndarray, np
         "side": side,
         "frames": {b: f.to_dict() for b, f in frames.items()},
         "angles_deg": angles,
+        "extension": extension.facts,
         "residuals_mm": residuals,
         "registration": {b: r.facts() for b, r in regs.items()},
         "shape_side": shape,
@@ -107,6 +124,68 @@ def place(bones: dict[str, pv.PolyData], side: str, plates: tuple[np.ndarray, np
               "sites_placed": sum(e["lps_mm"] is not None for f in fibres for e in f["ends"]),
               "unplaced": unplaced, "shape_side": shape, "seconds": round(time.perf_counter() - t0, 3)}
     return Anatomy(document, report, frames, bones)
+
+
+@dataclass(frozen=True)
+class Motion:
+    """A rigid motion ``x -> rotation @ x + shift`` (LPS mm) and what it is, for ``attachments.json``."""
+
+    rotation: np.ndarray  # (3, 3)
+    shift: np.ndarray  # (3,) mm
+    facts: dict
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Points (..., 3), LPS mm, moved."""
+        return np.asarray(points, float) @ self.rotation.T + self.shift
+
+
+def extension_motion(femur: Frame, tibia: Frame, femur_mesh: pv.PolyData, plates: list[np.ndarray]) -> Motion:
+    """The motion that takes the tibia from the image pose to the knee's anatomical extension.
+
+    The tibia turns about the femur's flexion axis (``femur.lateral`` through ``femur.origin``) by
+    the image pose's Grood-Suntay flexion, back to 0 (varus and rotation as in the image), then
+    moves along its own turned long axis until its cartilage has the clearance from the femur's bone
+    it has in the image: the plate that lost most keeps its image clearance, the other at least its
+    own.  The condyles are not circles about the flexion axis (their distal radius is the larger), so
+    the turn alone drives the plateau some millimetres into the femur, or lifts it off.
+
+    Parameters
+    ----------
+    femur, tibia : the bones' frames in the image pose.
+    femur_mesh : the femur's closed surface (LPS mm), for signed distances (negative inside).
+    plates : points (N_i, 3), LPS mm, of each group whose clearance counts (each tibial plate's cartilage).
+    """
+    theta = np.radians(grood_suntay(femur, tibia)["flexion"])
+    lat, ant, prox = femur.lateral, femur.anterior, femur.proximal
+    # in the femur's sagittal plane, the angle from its proximal axis towards its anterior one falls by
+    # theta (Grood-Suntay's flexion, so a left knee's left-handed frame turns the same anatomical way)
+    rotation = (np.outer(lat, lat) + np.cos(theta) * (np.outer(prox, prox) + np.outer(ant, ant))
+                + np.sin(theta) * (np.outer(prox, ant) - np.outer(ant, prox)))
+    turned = femur.origin - rotation @ femur.origin
+    axis = rotation @ tibia.proximal
+
+    def clearance(rot: np.ndarray, shift: np.ndarray) -> np.ndarray:
+        """Each group's least signed distance (mm) from the femur's bone, the tibia moved."""
+        return np.array([float(np.min(pv.PolyData(p @ rot.T + shift).compute_implicit_distance(femur_mesh)
+                                      ["implicit_distance"])) for p in plates])
+
+    image = clearance(np.eye(3), np.zeros(3))
+    drop = 0.0
+    for _ in range(3):  # a move along the axis changes a plate's clearance by about as much: a few fixed-point steps
+        drop += float(np.max(image - clearance(rotation, turned - drop * axis)))
+    shift = turned - drop * axis
+    facts = {"flexion_removed_deg": round(float(np.degrees(theta)), 2), "tibia_moved_distally_mm": round(drop, 2),
+             "clearance_mm": [round(float(c), 2) for c in image],
+             "how": "tibia turned about the femur's flexion axis to 0 deg of flexion, then along its axis to its "
+                    "cartilage's image clearance from the femur"}
+    return Motion(rotation, shift, facts)
+
+
+def _clearance_points(plates: tuple[np.ndarray, np.ndarray] | None, tibia: np.ndarray) -> list[np.ndarray]:
+    """The point groups whose clearance from the femur :func:`extension_motion` keeps: each tibial plate's
+    cartilage (at most :data:`CLEARANCE_POINTS` of each, evenly strided), else the tibia's surface."""
+    groups = [p for p in (plates or ()) if len(p)] or [tibia]
+    return [np.asarray(p, float)[::max(1, len(p) // CLEARANCE_POINTS)] for p in groups]
 
 
 def _register(template, pts: dict[str, np.ndarray], side: str, plates) -> tuple[dict, dict, dict]:
@@ -128,11 +207,12 @@ def _register(template, pts: dict[str, np.ndarray], side: str, plates) -> tuple[
     return regs, frames, shape_verdict(*((mirror, fit) if mirrored else (fit, mirror)))
 
 
-def _fibre(fibre, regs: dict, bones: dict[str, pv.PolyData], trees: dict, femur_scale: float,
+def _fibre(fibre, regs: dict, bones: dict[str, pv.PolyData], trees: dict, femur_scale: float, extension: Motion,
            unplaced_bones: dict[str, str], unplaced: list[dict]) -> dict:
     """One fibre of the template on the subject's bones: each end mapped by its bone's registration and
     put on the bone's surface (the fibular ends move with the tibia), its slack length giving the
-    subject's fibre the template's reference strain; an end on a missing bone is listed in ``unplaced``."""
+    subject's fibre the template's reference strain in extension (a tibiofemoral fibre: its tibial
+    end moved by ``extension``; see the module's notes); an end on a missing bone is listed in ``unplaced``."""
     ends = []
     for end in fibre.ends:
         if end.bone not in regs:
@@ -153,8 +233,13 @@ def _fibre(fibre, regs: dict, bones: dict[str, pv.PolyData], trees: dict, femur_
     item = {"name": fibre.name, "bundle": fibre.bundle, "stiffness_n": fibre.stiffness_n,
             "template_slack_length_mm": fibre.slack_length_mm, "reference_strain": round(strain, 4), "ends": ends}
     if all(e["lps_mm"] is not None for e in ends):
+        points = {e["bone"]: np.asarray(e["lps_mm"], float) for e in ends}
         length = float(np.linalg.norm(np.subtract(ends[0]["lps_mm"], ends[1]["lps_mm"]))) + beyond
-        item.update(length_mm=round(length, 3), slack_length_mm=round(length / (1.0 + strain), 3))
+        item["length_mm"] = round(length, 3)
+        if set(points) == {"femur", "tibia"}:
+            length = float(np.linalg.norm(points["femur"] - extension.apply(points["tibia"]))) + beyond
+            item["extension_length_mm"] = round(length, 3)
+        item["slack_length_mm"] = round(length / (1.0 + strain), 3)
     else:
         scales = [regs[e.bone].similarity.scale for e in fibre.ends if e.bone in regs]
         item["slack_length_mm"] = round(fibre.slack_length_mm * float(np.mean(scales or [1.0])), 3)
