@@ -7,7 +7,9 @@ Default maps: every real label map in ../shared/data/real (pymskt, oai_labels, g
 For each knee (and its mirror image through the sagittal plane, with a name that says nothing of the
 side): the side decided without --side and how, the bones meshed as a job does, then the anatomy step
 timed (registration, frames, sites, figure); prints the registration residuals per bone, the sites
-placed and any that break the anatomy rules, the side-by-shape gap, and the time per knee.
+placed and any that break the anatomy rules, the side-by-shape gap, the time per knee, the image pose's
+anatomical flexion and how far the tibia moves along its axis on its way to extension
+(:func:`kneemesh_core.anatomy.attachments.extension_motion`).
 
 ``--stability``: how far each site moves between two segmentations of one knee: every label map
 (default: the OAI maps) against the same map with each bone opened, and closed, by one voxel.
@@ -70,7 +72,8 @@ def one(path: str, mirrored: bool) -> dict:
     return {"knee": Path(path).name, "mirrored": mirrored, "side": knee.side, "side_method": knee.side_method,
             "shape": knee.side_evidence.get("shape") or r["shape_side"], "residuals": r["residuals_mm"],
             "sites": r["sites_placed"], "violations": r["site_rule_violations"], "status": r["status"],
-            "reasons": r["reasons"], "angles": r["angles_deg"], "cortex_tilt": tilt, "seconds": seconds,
+            "reasons": r["reasons"], "angles": r["angles_deg"], "extension": anatomy.document["extension"],
+            "cortex_tilt": tilt, "seconds": seconds,
             "ingest_seconds": ingest_s}
 
 
@@ -148,6 +151,9 @@ def flexion_summary(ok: list[dict]) -> str:
         text += f"; two visits of one knee ({len(between)}) differ median {np.median(between):.1f}, max {max(between):.1f} deg"
     if mirror:
         text += f"; a knee and its mirror image differ median {np.median(mirror):.1f}, max {max(mirror):.1f} deg"
+    drop = np.array([r["extension"]["tibia_moved_distally_mm"] for r in ok])
+    text += (f"; to reach anatomical extension (the ligaments' reference pose) the tibia moves distally min "
+             f"{drop.min():.1f}, median {np.median(drop):.1f}, max {drop.max():.1f} mm")
     return text
 
 
