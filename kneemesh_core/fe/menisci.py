@@ -12,7 +12,8 @@ it, open where the rim faces the other plate (the horns' insertions on the inter
 eminence).  Its upper surface rises from the plate at the inner edge to at most :data:`HEIGHT_MM`
 above it at the rim, and nowhere comes closer than :data:`CLEARANCE_MM` to the seated femoral
 cartilage in any pose of the flexion path (the femur turned about its flexion axis, every
-:data:`POSE_STEP_DEG`): it carries nothing while the condyles follow that path and takes load only
+:data:`POSE_STEP_DEG`, from anatomical extension on: :func:`kneemesh_core.fe.model.ring_path`): it
+carries nothing while the condyles follow that path and takes load only
 when a condyle slides or rolls off it, as a meniscus restrains the condyle it holds.  (Shaped to the
 image pose alone, the ring lifted the flexed lateral condyle off its plate: the condyles' profile
 under the ring changes with flexion.)  The surface is shaped to the

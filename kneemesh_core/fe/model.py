@@ -207,8 +207,18 @@ def build(bones: dict[str, pv.PolyData], cartilages: dict[str, pv.UnstructuredGr
     _measure_springs(m)
     m.seating = _seating_record(m, femur, patella)
     if load.menisci:
-        add_menisci(m, load.flexion_deg)
+        add_menisci(m, *ring_path(load.flexion_deg, m.frame.get("image_flexion_deg")))
     return m
+
+
+def ring_path(flexion_deg: float, image_flexion_deg: float | None) -> tuple[float, float]:
+    """The femur's flexion from the image pose (deg, least and most) that the meniscus surrogates must clear:
+    from anatomical extension (``-image_flexion_deg``: every activity may stand the knee there, the knee bend
+    starts there) or the image pose, whichever is less flexed, to ``flexion_deg`` read either way, from the
+    image pose (the flexion activity) or anatomically (the knee bend).  The image pose alone where its
+    anatomical flexion is unknown."""
+    image = image_flexion_deg or 0.0
+    return min(0.0, -image), max(flexion_deg, flexion_deg - image)
 
 
 def unfit_to_deform(cartilages: dict[str, pv.UnstructuredGrid]) -> list[str]:
@@ -314,11 +324,12 @@ def _surface(m: Model, tissue: str) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([m.nodes[int(i)] for i in ids]), triangles
 
 
-def add_menisci(m: Model, flexion_deg: float) -> None:
+def add_menisci(m: Model, least_deg: float, most_deg: float) -> None:
     """The meniscus surrogates (:mod:`kneemesh_core.fe.menisci`) of the seated model: a ring of
     hexahedra on each tibial plate, rigid with the tibia, in contact with the femoral cartilage
     under the contact law of its compartment, clear of the femoral cartilage as it turns about the
-    flexion axis (deck X through the femur's reference node) from 0 to ``flexion_deg``."""
+    flexion axis (deck X through the femur's reference node) from ``least_deg`` to ``most_deg``
+    (:func:`ring_path`; 0 is the image pose)."""
     from scipy.spatial.transform import Rotation
 
     from kneemesh_core.fe.menisci import LAYER_MM, POSE_STEP_DEG, wedge
@@ -326,7 +337,8 @@ def add_menisci(m: Model, flexion_deg: float) -> None:
     points, triangles = _surface(m, "femoral_cartilage")
     centre = m.nodes[m.ref["femur"]]
     femoral = [((points - centre) @ Rotation.from_rotvec([np.radians(a), 0.0, 0.0]).as_matrix().T + centre, triangles)
-               for a in np.arange(0.0, flexion_deg + 1e-9, POSE_STEP_DEG)]
+               for a in np.unique(np.r_[np.arange(0.0, most_deg, POSE_STEP_DEG), np.arange(0.0, least_deg, -POSE_STEP_DEG),
+                                        least_deg, most_deg])]
     plates = {side: m.articular[f"{side}_tibial_cartilage"] for side in ("medial", "lateral")}
     for side, other in (("medial", "lateral"), ("lateral", "medial")):
         nodes, hexes = wedge(plates[side], femoral, m.tibial_axis, plates[other][0].mean(0))
