@@ -1,13 +1,15 @@
 """Our tibial contact against the paper's own simulations of the same knees (``paper_fe.json``).
 
     .venv/bin/python bench/paper_fe.py [--knees N] [--half tune|"held out"] [--offsets 0 10 20] [--cache DIR]
-                                       [--json F] [--figures DIR]
+                                       [--pose image|extension] [--json F] [--figures DIR]
 
 The knees of ``../shared/data/real/gibbons_imorphics`` (label maps rasterised from the paper's meshes)
-are meshed once into ``--cache`` (kept: a rerun only simulates), then run to 1 deg past the seated image
-pose under the paper's first-frame load of each knee (its tibial total, near extension), once per medial
-offset of the joint load (``--offsets``, mm: ``LoadCase.medial_offset_mm``).  At the end of seating
-(step time 1) it compares, per knee: the medial share of the tibial load (each compartment: its plate and
+are meshed once into ``--cache`` (kept: a rerun only simulates), then run under the paper's first-frame
+load of each knee (its tibial total, near extension), once per medial offset of the joint load
+(``--offsets``, mm: ``LoadCase.medial_offset_mm``), and compared with the paper's first frame (near extension):
+``--pose image`` (the default) at the end of seating in the image pose (these knees lie at 5-25 deg of anatomical
+flexion), ``--pose extension`` at anatomical extension (the knee bend's first leg from the seated image pose, the
+femur turned about its flexion axis, the load held).  It compares, per knee: the medial share of the tibial load (each compartment: its plate and
 its meniscus surrogate), each plate's contact area per kN of the tibial total, the plates' peaks, and each plate's centre of pressure (ours from LPS to the maps' mesh frame, (-x, -y,
 z); the paper's pressure-weighted).  The paper's plate names follow its files; each of our plates is
 matched to the paper's plate whose centre of pressure lies on its side (the files of a few knees name
@@ -49,24 +51,32 @@ def compartment_n(inc: dict, plate: str) -> float:
     return inc[plate]["force_n"] + inc.get(f"{plate}_meniscus", {}).get("force_n", 0.0)
 
 
-def ours(out: Path, load_n: float, offset_mm: float) -> dict | None:
-    """Our contact at the end of seating under ``load_n`` with the load ``offset_mm`` medial: per plate
-    force (N, with the meniscus surrogate), area (mm^2), peak (MPa) and centre of pressure (mesh frame,
-    mm); None when the run did not reach it."""
+def ours(out: Path, load_n: float, offset_mm: float, pose: str) -> dict | None:
+    """Our contact under ``load_n`` with the load ``offset_mm`` medial, at ``pose``: ``extension`` (anatomical
+    extension, where the paper's activity starts: the knee bend's first leg, its load held) or ``image`` (the
+    end of seating in the image pose): per plate force (N, with the meniscus surrogate), area (mm^2), peak
+    (MPa) and centre of pressure (mesh frame, mm); None when the run did not reach it."""
     from kneemesh_core.fe.physics import LoadCase
-    from kneemesh_core.fe.results import loaded
+    from kneemesh_core.fe.results import activity_start, loaded
     from kneemesh_core.fe.run import deck_load, simulate
 
     load = replace(deck_load(out / "fe") or LoadCase(), joint_load_n=round(load_n), medial_offset_mm=offset_mm)
+    if pose == "extension":  # to extension and a 1-deg bend back and forth under the same load
+        load = replace(load, activity="knee_bend", peak_load_n=load.joint_load_n)
     r = simulate(out, flexion_deg=1.0, load=load, timeout_s=900)
-    seated = next(iter(loaded(r["increments"])), None)
-    if seated is None:
+    on = loaded(r["increments"])
+    if pose == "extension":  # the last increment before the bend: at extension
+        start = activity_start(json.loads((out / r["folder"] / "model.json").read_text()))
+        on = [x for x in on if x["time"] <= start + 1e-9][::-1]
+    if not on:
         return None
+    seated = on[0]
     to_mesh = np.array([-1.0, -1.0, 1.0])  # LPS -> the maps' mesh frame (README.md)
     return {p: {"force_n": compartment_n(seated, p), "area_mm2": seated[p]["area_mm2"],
                 "peak_mpa": seated[p]["peak_pressure_mpa"],
                 "cop_mm": None if seated[p]["cop_lps_mm"] is None else (np.asarray(seated[p]["cop_lps_mm"]) * to_mesh).tolist()}
-            for p in PLATES} | {"seconds": r["seconds"], "completed": r["completed"]}
+            for p in PLATES} | {"seconds": r["seconds"], "completed": r["completed"],
+                                "anatomical_flexion_deg": seated["anatomical_flexion_deg"]}
 
 
 def paper(knee: dict, side: str) -> dict:
@@ -87,7 +97,8 @@ def compare(o: dict, p: dict) -> dict:
         return x["medial"]["force_n"] / (x["medial"]["force_n"] + x["lateral"]["force_n"])
 
     total = {k: x["medial"]["force_n"] + x["lateral"]["force_n"] for k, x in (("ours", o), ("paper", p))}
-    row = {"share": (share(o), share(p)), "total_n": (total["ours"], total["paper"])}
+    row = {"share": (share(o), share(p)), "total_n": (total["ours"], total["paper"]),
+           "anatomical_flexion_deg": o["anatomical_flexion_deg"]}
     for plate in PLATES:
         row[f"{plate}_area_per_kn"] = (o[plate]["area_mm2"] / total["ours"] * 1e3, p[plate]["area_mm2"] / total["paper"] * 1e3)
         row[f"{plate}_peak_mpa"] = (o[plate]["peak_mpa"], p[plate]["peak_mpa"])
@@ -146,7 +157,7 @@ def figures(rows: list[dict], folder: Path) -> None:
             ax.set_ylabel("KneeMesh")
             ax.grid(alpha=0.3)
         axs[0].legend()
-        fig.suptitle(f"First frame of the paper's activity against KneeMesh seated at the image pose, load {offset:g} mm medial")
+        fig.suptitle(f"First frame of the paper's activity against KneeMesh ({rs[0].get('pose', 'image')} pose), load {offset:g} mm medial")
         fig.tight_layout()
         fig.savefig(folder / f"paper_fe_offset_{offset:g}mm.png")
         plt.close(fig)
@@ -157,6 +168,8 @@ def main() -> None:
     ap.add_argument("--knees", type=int, default=0, help="the first N subjects' knees of each half (0: all)")
     ap.add_argument("--offsets", type=float, nargs="+", default=None, help="medial offsets, mm (default: the product's)")
     ap.add_argument("--half", choices=("tune", "held out"), help="only this half's knees")
+    ap.add_argument("--pose", choices=("image", "extension"), default="image",
+                    help="compare in the seated image pose or at anatomical extension (the paper's first frame, near extension)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/kneemesh-paper-fe"))
     ap.add_argument("--json", type=Path)
     ap.add_argument("--figures", type=Path)
@@ -187,9 +200,9 @@ def main() -> None:
             continue
         p = paper(reference[knee], side[knee])
         for offset in (o for o in offsets if (knee, o) not in done):
-            row = {"knee": knee, "half": half, "offset_mm": offset, "swapped": p["swapped"]}
+            row = {"knee": knee, "half": half, "offset_mm": offset, "swapped": p["swapped"], "pose": args.pose}
             try:
-                o = ours(out, p["medial"]["force_n"] + p["lateral"]["force_n"], offset)
+                o = ours(out, p["medial"]["force_n"] + p["lateral"]["force_n"], offset, args.pose)
                 row.update(compare(o, p) if o else {"error": "the run did not reach the end of seating"})
             except Exception as exc:  # noqa: BLE001
                 row["error"] = f"{type(exc).__name__}: {exc}"
