@@ -13,7 +13,8 @@ from kneemesh_core.hexmesh.conform import conform_bone
 from kneemesh_core.hexmesh.quality import boundary_crossings, crossing_nodes
 from kneemesh_core.knee import load_knee
 from kneemesh_core.job import JobOptions
-from kneemesh_core.surfaces.metrics import crossing_edges, signed_distance
+from kneemesh_core.surfaces.distance import signed_distance
+from kneemesh_core.surfaces.metrics import crossing_edges
 from kneemesh_core.surfaces.tissue import SurfaceOptions, reconstruct_bone
 from kneemesh_core.tissues import BONE_OF
 

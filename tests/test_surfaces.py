@@ -60,7 +60,7 @@ def test_under_its_cartilage_the_shell_follows_the_label_between_its_vertices():
     cartilage the shell's edges are the cartilage's element size, and its facets follow the label."""
     from scipy.spatial import cKDTree
 
-    from kneemesh_core.surfaces.metrics import distance_to_surface
+    from kneemesh_core.surfaces.distance import distance_to_surface
     from kneemesh_core.surfaces.tissue import label_surface
 
     knee = load_knee(real(OAI / "OAI_AKOA_9332151_96m.nii.gz"))
@@ -166,7 +166,8 @@ def test_cli_mesh_bones_only_with_stl(tmp_path):
 def test_within_a_tolerance_of_a_surface_answers_as_the_exact_distance_does():
     import pyvista as pv
 
-    from kneemesh_core.surfaces.metrics import distance_to_surface, within
+    from kneemesh_core.surfaces.distance import distance_to_surface
+    from kneemesh_core.surfaces.metrics import within
 
     box = pv.Box(bounds=(0, 20, 0, 10, 0, 4), level=2).triangulate()  # coarse triangles: centroids far from vertices
     rng = np.random.default_rng(3)
@@ -176,3 +177,51 @@ def test_within_a_tolerance_of_a_surface_answers_as_the_exact_distance_does():
     assert np.array_equal(within(pts, box, 0.5), exact)
     # a point 0.4 mm off the middle of a face is within 0.5 mm though 3.7 mm from the nearest vertex
     assert within(np.array([[10.0, 5.0, 4.4], [10.0, 5.0, 4.6]]), box, 0.5).tolist() == [True, False]
+
+
+def test_signed_distance_is_the_analytic_one_on_a_box_and_signed_right_off_a_knife_edge():
+    """The sign comes from the pseudonormal at the closest point: a face's normal inside it, the edge's
+    or the corner's where the closest point lies there (a face's normal alone calls points off a
+    sharp edge inside: a 20-deg wedge here). A box's signed distance is known everywhere."""
+    import pyvista as pv
+
+    from kneemesh_core.surfaces.distance import SurfaceDistance, closest_points, distance_to_surface, signed_distance
+
+    half = np.array([10.0, 5.0, 2.0])
+    box = pv.Box(bounds=(-10, 10, -5, 5, -2, 2), level=3).triangulate()
+    rng = np.random.default_rng(5)
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+    pts = np.concatenate([rng.uniform(-1.3 * half, 1.3 * half, size=(20000, 3)),
+                          corners[rng.integers(0, 8, 4000)] + rng.normal(0, 0.5, (4000, 3)),  # about the corners
+                          rng.uniform(-half, half, (4000, 3)) * [1, 0, 0] + [0, 5, 2] + rng.normal(0, 0.5, (4000, 3))])
+    q = np.abs(pts) - half
+    exact = np.where(q.max(1) > 0, np.linalg.norm(np.maximum(q, 0), axis=1), q.max(1))
+    sd = SurfaceDistance(box)
+    assert np.allclose(sd.signed(pts), exact, atol=1e-9)
+    d, cell, closest = sd.closest(pts)
+    assert np.allclose(d, np.abs(exact), atol=1e-9) and np.allclose(np.linalg.norm(pts - closest, axis=1), d)
+    assert cell.min() >= 0 and cell.max() < box.n_cells
+    for few in (pts[:20], pts):  # a one-off question about few points goes to VTK: the same answers
+        k = len(few)
+        assert np.allclose(signed_distance(few, box), exact[:k], atol=1e-9)
+        assert np.allclose(distance_to_surface(few, box), np.abs(exact[:k]), atol=1e-9)
+        assert np.allclose(np.linalg.norm(closest_points(few, box) - few, axis=1), np.abs(exact[:k]), atol=1e-9)
+
+    # a prism whose cross-section has a 20-deg apex at the origin, z in [-5, 5]
+    xy = np.array([[0.0, 0.0], [20.0, 3.5], [20.0, -3.5]])
+    points = np.concatenate([np.c_[xy, np.full(3, -5.0)], np.c_[xy, np.full(3, 5.0)]])
+    faces = [[0, 1, 2], [3, 5, 4], [0, 4, 1], [0, 3, 4], [1, 5, 2], [1, 4, 5], [2, 3, 0], [2, 5, 3]]  # outward
+    wedge = pv.PolyData.from_regular_faces(points, np.array(faces))
+    pts = np.c_[rng.uniform(-3, 6, 20000), rng.uniform(-3, 3, 20000), rng.uniform(-4, 4, 20000)]
+    # inside: on the inner side of both slanted faces (|y| < x tan 10 deg) and short of the base (x < 20)
+    inside = (np.abs(pts[:, 1]) < pts[:, 0] * 3.5 / 20)
+    distance = SurfaceDistance(wedge)
+    signed = distance.signed(pts)
+    clear = np.abs(signed) > 1e-9
+    assert np.array_equal(signed[clear] < 0, inside[clear])
+    # which of two faces the tree names at their shared edge is a tie broken by rounding: the normal must not
+    # depend on it (the upper face's normal calls (-1, -0.5, 0), off the apex, inside)
+    on_apex, at_corner = np.array([[0.0, 0.0, 1.0]] * 2), np.array([points[0]] * 3)
+    for cells, at in (([3, 6], on_apex), ([0, 3, 6], at_corner)):
+        n = distance._pseudonormal(np.array(cells), at)
+        assert np.allclose(n, n[0]) and n[0] @ [-1.0, -0.5, 0.0] > 0

@@ -46,6 +46,7 @@ from kneemesh_core.anatomy import template as tmpl
 from kneemesh_core.anatomy.frames import Frame, coarse_axes, femur_frame, grood_suntay, patella_frame, tibia_frame
 from kneemesh_core.anatomy.register import Registration, register, shape_verdict
 from kneemesh_core.geometry import evenly_spread
+from kneemesh_core.surfaces.distance import SurfaceDistance
 
 #: A registration residual (trimmed RMS, mm) above this is implausible for a bone of a knee: on the
 #: 126 real maps here and their mirror images the largest were femur 1.3, tibia 1.6, patella 1.8 mm
@@ -163,11 +164,11 @@ def extension_motion(femur: Frame, tibia: Frame, femur_mesh: pv.PolyData, plates
                 + np.sin(theta) * (np.outer(prox, ant) - np.outer(ant, prox)))
     turned = femur.origin - rotation @ femur.origin
     axis = rotation @ tibia.proximal
+    femur_distance = SurfaceDistance(femur_mesh)
 
     def clearance(rot: np.ndarray, shift: np.ndarray) -> np.ndarray:
         """Each group's least signed distance (mm) from the femur's bone, the tibia moved."""
-        return np.array([float(np.min(pv.PolyData(p @ rot.T + shift).compute_implicit_distance(femur_mesh)
-                                      ["implicit_distance"])) for p in plates])
+        return np.array([float(np.min(femur_distance.signed(p @ rot.T + shift))) for p in plates])
 
     image = clearance(np.eye(3), np.zeros(3))
     drop = 0.0

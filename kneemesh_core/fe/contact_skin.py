@@ -27,6 +27,8 @@ import numpy as np
 import pyvista as pv
 from scipy.spatial import cKDTree
 
+from kneemesh_core.surfaces.distance import SurfaceDistance, closest_points
+
 #: The skin's triangle edge, mm (the sample's smoke run: 86 s of CPU on the 1 mm hexahedral faces, 35 s on
 #: 2 mm skins, 19 s on 3 mm skins, forces within 3 % of each other's on the plates).
 SKIN_EDGE_MM = 3.0
@@ -75,7 +77,7 @@ def skin(points: np.ndarray, triangles: np.ndarray, outward: np.ndarray, edge_mm
             # deadlocks in a process forked from one that has used it: a job's pool)
             remeshed = clustering.create_mesh(moveclus=False)
         faces = np.asarray(remeshed.regular_faces)
-        top = surface.find_closest_cell(np.asarray(remeshed.points, float), return_closest_point=True)[1]
+        top = closest_points(np.asarray(remeshed.points, float), surface)
         top = _snap_outline(top, faces, points, triangles)
     normal = np.cross(top[faces[:, 1]] - top[faces[:, 0]], top[faces[:, 2]] - top[faces[:, 0]])
     area = 0.5 * np.linalg.norm(normal, axis=1)
@@ -112,7 +114,7 @@ def _fit(top: np.ndarray, faces: np.ndarray, unit: np.ndarray, surface_points: n
     sagitta, which on a 40 mm sphere pressed 0.5 mm into a plane cost 3 mm skins 15 % of the force.  The
     mean distance outward from the skin (``top`` (N, 3), ``faces`` (F, 3), outward ``unit`` normals (F, 3))
     to the ``surface_points`` (S, 3) nearest each node."""
-    cell, closest = pv.PolyData.from_regular_faces(top, faces).find_closest_cell(surface_points, return_closest_point=True)
+    _, cell, closest = SurfaceDistance(pv.PolyData.from_regular_faces(top, faces)).closest(surface_points)
     outward = np.einsum("ij,ij->i", surface_points - closest, unit[cell])
     owner = cKDTree(top).query(surface_points)[1]
     count = np.bincount(owner, minlength=len(top))

@@ -40,7 +40,6 @@ import dataclasses
 
 import numpy as np
 import pyvista as pv
-from vtkmodules.vtkFiltersCore import vtkImplicitPolyDataDistance
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -51,7 +50,7 @@ from kneemesh_core.hexmesh.optimize import independent, layer_quality
 from kneemesh_core.hexmesh.quadmesh import quad_edges
 from kneemesh_core.hexmesh.quality import crossing_nodes
 from kneemesh_core.hexmesh.targets import BLEND_MIN_SCALED_JACOBIAN, FUSED_TOL_MM, MIN_SCALED_JACOBIAN
-from kneemesh_core.surfaces.metrics import signed_distance
+from kneemesh_core.surfaces.distance import SurfaceDistance
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,12 +163,6 @@ def _floors(ring_elem: np.ndarray, edge_floor: float) -> np.ndarray:
     return np.where(ring_elem == 0, edge_floor, MIN_SCALED_JACOBIAN)
 
 
-def _closest(surface: pv.PolyData, pts: np.ndarray) -> np.ndarray:
-    """Nearest points (N, 3) on a surface."""
-    _, closest = surface.find_closest_cell(pts, return_closest_point=True)
-    return np.asarray(closest)
-
-
 class _Bone:
     """A closed bone surface: nearest points on it, and a normal field that varies smoothly
     (vertex normals blended over ~2 mm: cell normals jump at every edge of a 3 mm mesh)."""
@@ -179,16 +172,15 @@ class _Bone:
         self.tree = cKDTree(self.surface.points)
         self.normals = np.asarray(self.surface.point_data["Normals"])
         self.sigma = sigma_mm
-        self.implicit = vtkImplicitPolyDataDistance()  # its locator is built once, here
-        self.implicit.SetInput(self.surface)
+        self.distance = SurfaceDistance(self.surface)  # its tree is built once, here
 
     def signed(self, pts: np.ndarray) -> np.ndarray:
-        """Signed distance (N,) of points (N, 3) to the bone, mm: negative inside
-        (:func:`kneemesh_core.surfaces.metrics.signed_distance` with the locator kept)."""
-        return signed_distance(pts, self.surface, self.implicit)
+        """Signed distance (N,) of points (N, 3) to the bone, mm: negative inside."""
+        return self.distance.signed(pts)
 
     def closest(self, pts: np.ndarray) -> np.ndarray:
-        return _closest(self.surface, pts)
+        """Nearest points (N, 3) on the bone."""
+        return self.distance.closest(pts)[2]
 
     def slide(self, pts: np.ndarray, disp: np.ndarray, steps: int = 4) -> np.ndarray:
         """March points over the surface by ``disp`` (N, 3) in ``steps`` tangent steps, so a foot

@@ -19,7 +19,8 @@ import numpy as np
 import pyvista as pv
 
 from kneemesh_core.hexmesh.targets import FUSED_TOL_MM
-from kneemesh_core.surfaces.metrics import crossing_edges, signed_distance
+from kneemesh_core.surfaces.distance import SurfaceDistance
+from kneemesh_core.surfaces.metrics import crossing_edges
 
 
 def conform_bone(bone: pv.PolyData, cartilages: dict[str, pv.UnstructuredGrid], *, clearance_mm: float = 0.02,
@@ -36,7 +37,7 @@ def conform_bone(bone: pv.PolyData, cartilages: dict[str, pv.UnstructuredGrid], 
     if not nodes:
         return bone, {"applied": False, "vertices_moved": 0, "max_dent_mm": 0.0, "cartilages": {}}
     every = np.concatenate(list(nodes.values()))
-    start = signed_distance(every, bone)
+    start = SurfaceDistance(bone).signed(every)
     normal = np.asarray(bone.compute_normals(cell_normals=False, point_normals=True, auto_orient_normals=True)
                         .point_data["Normals"], float)
     origin = np.array(bone.points, float)
@@ -49,12 +50,12 @@ def conform_bone(bone: pv.PolyData, cartilages: dict[str, pv.UnstructuredGrid], 
         if not len(deep):
             break
         # the triangle over each deep node moves down past it: all three corners by its depth
-        cell, _ = surface.find_closest_cell(every[deep], return_closest_point=True)
+        cell = SurfaceDistance(surface).closest(every[deep])[1]
         extra = np.zeros(len(origin))
         np.maximum.at(extra, faces[cell].ravel(), np.repeat(-sd[deep] + clearance_mm, 3))
         dent = np.minimum(dent + extra, max_dent_mm)
         surface.points = origin - normal * dent[:, None]
-        sd = signed_distance(every, surface)
+        sd = SurfaceDistance(surface).signed(every)
     moved = dent > 0
     facts: dict = {"applied": False, "vertices_moved": int(moved.sum()), "max_dent_mm": round(float(dent.max(initial=0)), 3)}
     if moved.any() and crossing_edges(surface) > crossing_edges(bone):

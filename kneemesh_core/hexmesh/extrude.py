@@ -40,6 +40,7 @@ from kneemesh_core.hexmesh.optimize import choose_columns, choose_tops, settle
 from kneemesh_core.hexmesh.quadmesh import EIGHT_DIRECTIONS, QuadMesh, quad_edges, quad_rings
 from kneemesh_core.hexmesh.rays import crossings, first_crossing, intersector
 from kneemesh_core.hexmesh.targets import EDGE_RATIO_AIM, MIN_SCALED_JACOBIAN
+from kneemesh_core.surfaces.distance import closest_points
 
 
 
@@ -340,8 +341,7 @@ def extrude(qm: QuadMesh, fp: Footprint, domain, layers: int, surface: pv.PolyDa
     bone, top = settle(bone, top, top_wall, qm.quads, layers, bottom_target=bone_wall, sweeps=8)
     # articular nodes the rim floor or the untangling lifted off the surface go back onto it
     # wherever the elements around them stay good
-    _, closest = surface.find_closest_cell(top, return_closest_point=True)
-    _, top = settle(bone, top, closest, qm.quads, layers)
+    _, top = settle(bone, top, closest_points(top, surface), qm.quads, layers)
     return _stack(qm, bone, top, layers)
 
 

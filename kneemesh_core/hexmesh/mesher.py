@@ -30,7 +30,7 @@ from kneemesh_core.hexmesh.targets import (BLEND_FRAC_GOOD, BLEND_MIN_SCALED_JAC
                                            MAX_ATTEMPT_VOLUME_ERROR, MAX_EDGE_RATIO, MAX_FLOOR_EXCESS, MIN_SCALED_JACOBIAN)
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.surfaces.masks import CleanMask, clean_mask, label_box
-from kneemesh_core.surfaces.metrics import signed_distance
+from kneemesh_core.surfaces.distance import signed_distance
 from kneemesh_core.surfaces.tissue import cartilage_surface
 from kneemesh_core.tissues import BONE_OF, LABEL
 

@@ -17,6 +17,7 @@ import pyvista as pv
 from kneemesh_core.fe.results import loaded
 from kneemesh_core.geometry import quad_node_normals, unit
 from kneemesh_core.hexmesh.quality import articular_quads
+from kneemesh_core.surfaces.distance import closest_points
 
 #: Rays further than this from the normal are not counted (the paper's 20 deg), deg.
 MAX_RAY_ANGLE_DEG = 20.0
@@ -39,8 +40,7 @@ def surface_deviation(a: pv.UnstructuredGrid, b: pv.UnstructuredGrid,
     pb, qb = articular_surface(b)
     normals = unit(quad_node_normals(pa, qa))
     surface = pv.PolyData(pb, np.hstack([np.full((len(qb), 1), 4), qb]).ravel()).triangulate()
-    _, closest = surface.find_closest_cell(pa, return_closest_point=True)
-    d = closest - pa
+    d = closest_points(pa, surface) - pa
     dist = np.linalg.norm(d, axis=1)
     cos = np.abs(np.einsum("ij,ij->i", d, normals)) / np.maximum(dist, 1e-12)
     keep = (dist < 1e-6) | (cos >= np.cos(np.radians(max_angle_deg)))

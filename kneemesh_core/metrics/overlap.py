@@ -20,6 +20,7 @@ import pyvista as pv
 from kneemesh_core.geometry import quad_node_areas
 from kneemesh_core.hexmesh.quality import boundary_surface
 from kneemesh_core.metrics.compare import articular_surface
+from kneemesh_core.surfaces.distance import signed_distance
 
 #: Deepest cartilage-cartilage overlap the FE seating step resolves without leaving the image pose, mm.
 MAX_SEATABLE_OVERLAP_MM = 1.0
@@ -42,7 +43,7 @@ def closed_surface(mesh: pv.DataSet) -> pv.PolyData:
 def overlap(points: np.ndarray, areas: np.ndarray, other: pv.PolyData) -> dict:
     """How far the points (N, 3) reach into the closed surface ``other``: ``max_depth_mm`` (0 if
     none is inside), ``area_mm2`` (the summed ``areas`` (N,) of those inside) and ``nodes``."""
-    signed = np.asarray(pv.PolyData(points).compute_implicit_distance(other)["implicit_distance"])
+    signed = signed_distance(points, other)
     inside = signed < 0
     return {"max_depth_mm": round(float(-signed[inside].min()) if inside.any() else 0.0, 4),
             "area_mm2": round(float(areas[inside].sum()), 3), "nodes": int(inside.sum())}

@@ -10,10 +10,9 @@ import pymeshfix
 import pyvista as pv
 from pyvista.core.errors import PyVistaDeprecationWarning
 from scipy.spatial import cKDTree
-from vtkmodules.vtkCommonCore import reference
-from vtkmodules.vtkCommonDataModel import vtkStaticCellLocator
 
 from kneemesh_core.errors import KneeMeshError
+from kneemesh_core.surfaces.distance import closest_points
 from kneemesh_core.surfaces.isosurface import orient_outward
 
 #: Area per vertex of an ideal triangulation with edge e: two equilateral triangles per vertex.
@@ -28,20 +27,6 @@ def _meshfix(surf: pv.PolyData) -> pv.PolyData:
     mf = pymeshfix.MeshFix(np.asarray(surf.points, float), faces)
     mf.repair(joincomp=False, remove_smallest_components=True)
     return pv.PolyData.from_regular_faces(mf.points, mf.faces)
-
-
-def closest_points(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
-    """Closest point (N, 3) on ``surface`` to each of ``points`` (N, 3), mm."""
-    loc = vtkStaticCellLocator()
-    loc.SetDataSet(surface)
-    loc.BuildLocator()
-    out = np.empty_like(points)
-    cp = [0.0, 0.0, 0.0]
-    cell, sub, d2 = reference(0), reference(0), reference(0.0)
-    for i, p in enumerate(points):  # VTK has no batched closest-point query; ~3k points per bone
-        loc.FindClosestPoint(p, cp, cell, sub, d2)
-        out[i] = cp
-    return out
 
 
 def bone_mesh(surface: pv.PolyData, edge_mm: float = 3.0, *, fine_edge_mm: float | None = None,

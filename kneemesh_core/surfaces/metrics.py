@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pymeshfix
 import pyvista as pv
-from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
-from vtkmodules.vtkCommonCore import vtkDoubleArray
-from vtkmodules.vtkFiltersCore import vtkImplicitPolyDataDistance
+
+from kneemesh_core.surfaces.distance import distance_to_surface
 
 
 def unique_edges(surf: pv.PolyData) -> np.ndarray:
@@ -67,26 +66,6 @@ def crossings(surf: pv.PolyData) -> tuple[np.ndarray, np.ndarray]:
     return e[hit], f[tri[inside & ~own][first]]
 
 
-def signed_distance(points: np.ndarray, surface: pv.PolyData,
-                    implicit: vtkImplicitPolyDataDistance | None = None) -> np.ndarray:
-    """Signed distance (mm) of each point (N, 3) to a closed ``surface``: negative inside.
-
-    ``implicit``: that surface's ``vtkImplicitPolyDataDistance``, for callers that ask many times
-    (building its locator is most of the cost of a small query)."""
-    f = implicit
-    if f is None:
-        f = vtkImplicitPolyDataDistance()
-        f.SetInput(surface)
-    out = vtkDoubleArray()
-    f.FunctionValue(numpy_to_vtk(np.ascontiguousarray(points, dtype=float), deep=True), out)
-    return vtk_to_numpy(out).copy()
-
-
-def distance_to_surface(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
-    """Unsigned distance (mm) of each point (N, 3) to the nearest point of ``surface``."""
-    return np.abs(signed_distance(points, surface))
-
-
 def within(points: np.ndarray, surface: pv.PolyData, tol_mm: float) -> np.ndarray:
     """Whether each point (N, 3) lies within ``tol_mm`` of a triangle ``surface``: (N,) bool, the
     same answer as ``distance_to_surface(points, surface) <= tol_mm``.
@@ -94,7 +73,7 @@ def within(points: np.ndarray, surface: pv.PolyData, tol_mm: float) -> np.ndarra
     Most points are settled by a k-d tree of points on the surface (its vertices, and on each
     triangle its centroid, edge midpoints and three inner points): such a point's distance is an
     upper bound of the distance to the surface.  Only the rest (a few percent of a cartilage's
-    surface against its mesh) go to VTK's exact distance, which costs 3x more over all of them."""
+    surface against its mesh) go to the exact distance."""
     from scipy.spatial import cKDTree
 
     p = np.asarray(surface.points, float)
