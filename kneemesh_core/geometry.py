@@ -17,6 +17,19 @@ def unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), EPS)
 
 
+def unique_rows(a: np.ndarray, return_inverse: bool = False, return_counts: bool = False):
+    """``np.unique(a, axis=0, ...)`` for non-negative integer rows (N, K) (edges, faces as vertex ids):
+    the same rows in the same (lexicographic) order, inverse and counts, ~8x faster (each row becomes
+    one integer, and numpy's 1-D unique needs no lexsort of row views)."""
+    a = np.asarray(a)
+    dims = tuple(int(m) + 1 for m in a.max(0)) if len(a) else (1,) * a.shape[1]
+    out = np.unique(np.ravel_multi_index(tuple(a.T), dims), return_inverse=return_inverse,
+                    return_counts=return_counts)
+    u, rest = (out[0], out[1:]) if isinstance(out, tuple) else (out, ())
+    rows = np.stack(np.unravel_index(u, dims), 1).astype(a.dtype, copy=False)
+    return (rows, *rest) if rest else rows
+
+
 def quad_node_normals(points: np.ndarray, quads: np.ndarray) -> np.ndarray:
     """Unnormalised node normals (P, 3) of a quad surface: the sum of the diagonal cross products of
     the quads (Q, 4) around each node of ``points`` (P, 3); they point to the side from which the

@@ -225,3 +225,15 @@ def test_signed_distance_is_the_analytic_one_on_a_box_and_signed_right_off_a_kni
     for cells, at in (([3, 6], on_apex), ([0, 3, 6], at_corner)):
         n = distance._pseudonormal(np.array(cells), at)
         assert np.allclose(n, n[0]) and n[0] @ [-1.0, -0.5, 0.0] > 0
+
+
+def test_unique_rows_is_numpys_unique_over_rows():
+    from kneemesh_core.geometry import unique_rows
+
+    rng = np.random.default_rng(2)
+    for shape in ((5000, 2), (300, 4), (0, 2)):
+        a = rng.integers(0, 40, shape)
+        want = np.unique(a, axis=0, return_inverse=True, return_counts=True)
+        got = unique_rows(a, return_inverse=True, return_counts=True)
+        assert all(np.array_equal(w.ravel(), g.ravel()) for w, g in zip(want, got))
+        assert np.array_equal(unique_rows(a), want[0])

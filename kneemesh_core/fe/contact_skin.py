@@ -27,6 +27,7 @@ import numpy as np
 import pyvista as pv
 from scipy.spatial import cKDTree
 
+from kneemesh_core.geometry import unique_rows
 from kneemesh_core.surfaces.distance import SurfaceDistance, closest_points
 
 #: The skin's triangle edge, mm (the sample's smoke run: 86 s of CPU on the 1 mm hexahedral faces, 35 s on
@@ -124,7 +125,7 @@ def _fit(top: np.ndarray, faces: np.ndarray, unit: np.ndarray, surface_points: n
 def _outline(triangles: np.ndarray) -> np.ndarray:
     """The boundary edges (B, 2) of a triangle surface: the edges of one triangle only."""
     edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
-    unique, count = np.unique(edges, axis=0, return_counts=True)
+    unique, count = unique_rows(edges, return_counts=True)
     return unique[count == 1]
 
 

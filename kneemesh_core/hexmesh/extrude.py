@@ -34,7 +34,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pyvista as pv
 
-from kneemesh_core.geometry import interpolate_layers, quad_node_normals, unit
+from kneemesh_core.geometry import interpolate_layers, quad_node_normals, unique_rows, unit
 from kneemesh_core.hexmesh.footprint import Footprint
 from kneemesh_core.hexmesh.optimize import choose_columns, choose_tops, settle
 from kneemesh_core.hexmesh.quadmesh import EIGHT_DIRECTIONS, QuadMesh, quad_edges, quad_rings
@@ -389,7 +389,7 @@ def trim_columns(hm: HexMesh, keep: np.ndarray) -> tuple[HexMesh, np.ndarray]:
     out = keep_columns(hm, quads, keep)
     quads = out.hexes[out.layer == 0][:, :4]
     sides = np.sort(quad_edges(quads, unique=False), 1)  # side k of quad q at k * Q + q
-    _, side, count = np.unique(sides, axis=0, return_inverse=True, return_counts=True)
+    _, side, count = unique_rows(sides, return_inverse=True, return_counts=True)
     open_side = count[side.ravel()] == 1
     edge = np.zeros(int(kept_nodes.sum()), bool)
     edge[sides[open_side].ravel()] = True

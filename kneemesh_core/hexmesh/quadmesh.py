@@ -27,7 +27,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage.measure import find_contours
 
-from kneemesh_core.geometry import unit
+from kneemesh_core.geometry import unique_rows, unit
 from kneemesh_core.hexmesh.footprint import Footprint, enclosed_holes
 from kneemesh_core.hexmesh.optimize import MoveScores, independent, node_min
 
@@ -83,7 +83,7 @@ class QuadMesh:
 def quad_edges(quads: np.ndarray, unique: bool = True) -> np.ndarray:
     """The edges (E, 2) of quads (Q, 4): all 4Q in quad order, or the unique ones sorted."""
     e = np.concatenate([quads[:, [0, 1]], quads[:, [1, 2]], quads[:, [2, 3]], quads[:, [3, 0]]])
-    return np.unique(np.sort(e, 1), axis=0) if unique else e
+    return unique_rows(np.sort(e, 1)) if unique else e
 
 
 def quad_quality(points: np.ndarray, quads: np.ndarray) -> np.ndarray:
@@ -209,7 +209,7 @@ def _covered(qm: QuadMesh, fp: Footprint) -> np.ndarray:
     """The footprint's grid points (ns, nt) bool inside a quad mesh: the even-odd rule over the
     mesh's boundary edges, one grid row at a time (holes come out as holes)."""
     e = quad_edges(qm.quads, unique=False)
-    _, inverse, count = np.unique(np.sort(e, 1), axis=0, return_inverse=True, return_counts=True)
+    _, inverse, count = unique_rows(np.sort(e, 1), return_inverse=True, return_counts=True)
     b = e[count[inverse.ravel()] == 1]
     p = fp.grid.index(qm.points)
     a, c = p[b[:, 0]], p[b[:, 1]]

@@ -6,13 +6,14 @@ import numpy as np
 import pymeshfix
 import pyvista as pv
 
+from kneemesh_core.geometry import unique_rows
 from kneemesh_core.surfaces.distance import distance_to_surface
 
 
 def unique_edges(surf: pv.PolyData) -> np.ndarray:
     """The unique edges (E, 2) of a triangle surface, each as its two vertex ids, sorted."""
     f = surf.faces.reshape(-1, 4)[:, 1:]
-    return np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    return unique_rows(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1))
 
 
 def edges_mm(surf: pv.PolyData, edges: np.ndarray | None = None) -> np.ndarray:
@@ -27,10 +28,10 @@ def topology(surf: pv.PolyData) -> dict:
     f = surf.faces.reshape(-1, 4)[:, 1:]
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     und = np.sort(directed, axis=1)
-    _, counts = np.unique(und, axis=0, return_counts=True)
+    _, counts = unique_rows(und, return_counts=True)
     manifold = bool(np.all(counts <= 2))
     # consistent winding: each directed edge appears once
-    _, dcounts = np.unique(directed, axis=0, return_counts=True)
+    _, dcounts = unique_rows(directed, return_counts=True)
     watertight = bool(manifold and np.all(counts == 2) and np.all(dcounts == 1))
     tm = pymeshfix.PyTMesh()
     tm.set_quiet(True)
@@ -53,7 +54,7 @@ def crossings(surf: pv.PolyData) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
     f = surf.faces.reshape(-1, 4)[:, 1:]
-    e = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    e = unique_edges(surf)
     p = np.asarray(surf.points, float)
     vec = p[e[:, 1]] - p[e[:, 0]]
     length = np.linalg.norm(vec, axis=1)
