@@ -115,21 +115,22 @@ def _few(points: np.ndarray, surface: pv.PolyData) -> bool:
 def signed_distance(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
     """Signed distance (N,) of points (N, 3) to a closed, outward ``surface``, mm: negative inside."""
     points = np.ascontiguousarray(np.asarray(points, float).reshape(-1, 3))
-    if not _few(points, surface):
-        return SurfaceDistance(surface).signed(points)
+    return SurfaceDistance(surface).signed(points) if not _few(points, surface) else _vtk_signed(points, surface)
+
+
+def _vtk_signed(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
+    """VTK's signed distance (N,) of points (N, 3): its magnitude is the distance to any triangle surface."""
     f = vtkImplicitPolyDataDistance()
     f.SetInput(surface)
     out = vtkDoubleArray()
-    f.FunctionValue(numpy_to_vtk(points, deep=True), out)
+    f.FunctionValue(numpy_to_vtk(np.ascontiguousarray(points, dtype=float), deep=True), out)
     return vtk_to_numpy(out).copy()
 
 
 def distance_to_surface(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
     """Unsigned distance (N,) of points (N, 3) to the nearest point of a triangle ``surface``, mm."""
     points = np.asarray(points, float).reshape(-1, 3)
-    if not _few(points, surface):
-        return SurfaceDistance(surface).unsigned(points)
-    return np.linalg.norm(closest_points(points, surface) - points, axis=1)
+    return SurfaceDistance(surface).unsigned(points) if not _few(points, surface) else np.abs(_vtk_signed(points, surface))
 
 
 def closest_points(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
