@@ -163,22 +163,6 @@ def test_cli_mesh_bones_only_with_stl(tmp_path):
     assert report["input"]["side"] == "right"
 
 
-def test_within_a_tolerance_of_a_surface_answers_as_the_exact_distance_does():
-    import pyvista as pv
-
-    from kneemesh_core.surfaces.distance import distance_to_surface
-    from kneemesh_core.surfaces.metrics import within
-
-    box = pv.Box(bounds=(0, 20, 0, 10, 0, 4), level=2).triangulate()  # coarse triangles: centroids far from vertices
-    rng = np.random.default_rng(3)
-    pts = rng.uniform([-2, -2, -2], [22, 12, 6], size=(20000, 3))
-    exact = distance_to_surface(pts, box) <= 0.5
-    assert 0.05 < exact.mean() < 0.5  # both answers are common
-    assert np.array_equal(within(pts, box, 0.5), exact)
-    # a point 0.4 mm off the middle of a face is within 0.5 mm though 3.7 mm from the nearest vertex
-    assert within(np.array([[10.0, 5.0, 4.4], [10.0, 5.0, 4.6]]), box, 0.5).tolist() == [True, False]
-
-
 def test_signed_distance_is_the_analytic_one_on_a_box_and_signed_right_off_a_knife_edge():
     """The sign comes from the pseudonormal at the closest point: a face's normal inside it, the edge's
     or the corner's where the closest point lies there (a face's normal alone calls points off a

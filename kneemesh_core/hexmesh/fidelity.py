@@ -11,7 +11,7 @@ from kneemesh_core.hexmesh.extrude import HexMesh
 from kneemesh_core.hexmesh.quality import boundary_surface, to_grid
 from kneemesh_core.hexmesh.targets import (COVERAGE_TOL_MM, MAX_DEVIATION_MEDIAN_MM, MAX_DEVIATION_P95_MM,
                                            MIN_COVERAGE, VOLUME_TOL)
-from kneemesh_core.surfaces.metrics import distance_to_surface, within
+from kneemesh_core.surfaces.distance import distance_to_surface
 
 #: The figures of a :func:`fidelity` result that the targets read, headline figures of a shipped mesh.
 FIGURES = ("volume_ml", "volume_error", "coverage", "surface_deviation_mm")
@@ -35,7 +35,7 @@ def fidelity(hm: HexMesh, surface: pv.PolyData, label_ml: float, unblended: HexM
     cells = surface.compute_cell_sizes(length=False, volume=False)
     area = np.asarray(cells.cell_data["Area"])
     centres = np.asarray(surface.cell_centers().points, float)
-    covered = within(centres, outer, COVERAGE_TOL_MM)
+    covered = distance_to_surface(centres, outer) <= COVERAGE_TOL_MM
     coverage = float(area[covered].sum() / area.sum())
     top = hm.node_layer == hm.node_layer.max()
     dev = distance_to_surface(hm.points[top], surface)
@@ -74,7 +74,8 @@ def _beyond_rim(hm: HexMesh, unblended: HexMesh, surface: pv.PolyData, centres: 
     excused = np.zeros(len(centres), bool)
     rest = np.flatnonzero(~covered)
     if rest.size:
-        was = within(centres[rest], boundary_surface(to_grid(unblended.points, unblended.hexes)), COVERAGE_TOL_MM)
+        skin = boundary_surface(to_grid(unblended.points, unblended.hexes))
+        was = distance_to_surface(centres[rest], skin) <= COVERAGE_TOL_MM
         column = cKDTree(unblended.points).query(centres[rest[was]])[1] % P
         excused[rest[was]] = rim[column]
     top = np.flatnonzero(hm.node_layer == hm.node_layer.max())

@@ -130,7 +130,7 @@ def _vtk_signed(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
 def distance_to_surface(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:
     """Unsigned distance (N,) of points (N, 3) to the nearest point of a triangle ``surface``, mm."""
     points = np.asarray(points, float).reshape(-1, 3)
-    return SurfaceDistance(surface).unsigned(points) if not _few(points, surface) else np.abs(_vtk_signed(points, surface))
+    return np.abs(_vtk_signed(points, surface)) if _few(points, surface) else SurfaceDistance(surface).unsigned(points)
 
 
 def closest_points(points: np.ndarray, surface: pv.PolyData) -> np.ndarray:

@@ -67,29 +67,6 @@ def crossings(surf: pv.PolyData) -> tuple[np.ndarray, np.ndarray]:
     return e[hit], f[tri[inside & ~own][first]]
 
 
-def within(points: np.ndarray, surface: pv.PolyData, tol_mm: float) -> np.ndarray:
-    """Whether each point (N, 3) lies within ``tol_mm`` of a triangle ``surface``: (N,) bool, the
-    same answer as ``distance_to_surface(points, surface) <= tol_mm``.
-
-    Most points are settled by a k-d tree of points on the surface (its vertices, and on each
-    triangle its centroid, edge midpoints and three inner points): such a point's distance is an
-    upper bound of the distance to the surface.  Only the rest (a few percent of a cartilage's
-    surface against its mesh) go to the exact distance."""
-    from scipy.spatial import cKDTree
-
-    p = np.asarray(surface.points, float)
-    f = surface.faces.reshape(-1, 4)[:, 1:]
-    a, b, c = p[f[:, 0]], p[f[:, 1]], p[f[:, 2]]
-    samples = np.concatenate([p, (a + b + c) / 3, (a + b) / 2, (b + c) / 2, (c + a) / 2,
-                              (4 * a + b + c) / 6, (a + 4 * b + c) / 6, (a + b + 4 * c) / 6])
-    near, _ = cKDTree(samples).query(points, distance_upper_bound=tol_mm)
-    out = near <= tol_mm
-    rest = ~out
-    if rest.any():
-        out[rest] = distance_to_surface(points[rest], surface) <= tol_mm
-    return out
-
-
 def surface_distance(mesh: pv.PolyData, reference: pv.PolyData, max_points: int = 30000, seed: int = 0) -> dict:
     """Symmetric surface distance between a mesh and a reference surface, mm.
 
