@@ -9,11 +9,11 @@ paper's cohort, interleaved so that a run stopped early is a fair sample of all 
 one `kneemesh mesh` process (start-up included), so run this on an idle machine. `--simulate smoke|full`
 adds the CalculiX run (a cohort study's cost: meshing plus the activity); the table then gains its
 time and the run's outcome. With `--json`, every knee is written as it ends; `--resume` skips the knees
-already in that file, so a long cohort run can be continued. Prints per knee the wall time and where it went along the critical path, read from
-the job's step records: start-up (process start to the first step), then how much later each stage
-of the plan ended than the one before (ingest; meshing: bones and cartilage meshes; blends: the
-cartilages' blends beside the anatomy; conform; decks beside the overlaps; report) with its longest
-step, and the exit; then median, p90 and max of each.
+already in that file, so a long cohort run can be continued. Prints per knee the wall time and where
+it went along the critical path, read from the job's step records: start-up (process start to the
+first step), then how much later each stage of the plan ended than the one before (ingest; meshing:
+bones and cartilage meshes; blends: the cartilages' blends beside the anatomy; conform; decks beside the
+overlaps; report) with its longest step, and the exit; then median, p90 and max of each.
 """
 
 from __future__ import annotations
@@ -129,7 +129,8 @@ def main() -> None:
                                                                  f"; start-up {r['startup']:.1f}, {parts}; {r['verdict']}{ran}"))
     ok = [r for r in rows if "error" not in r]
     sims = [r["simulation"] for r in ok if r.get("simulation")]
-    title = f"Whole-knee job, `kneemesh mesh --workers {a.workers} --simulate {a.simulate}`, {len(ok)}/{len(rows)} knees meshed"
+    title = (f"Whole-knee job, `kneemesh mesh --workers {a.workers} --simulate {a.simulate}`, "
+             f"{len(ok)}/{len(rows)} knees meshed")
     if a.simulate != "none":
         title += (f", {sum(bool(s['completed']) for s in sims)}/{len(rows)} runs completed, "
                   f"{sum(bool(s['physiological']) for s in sims)} physiological")

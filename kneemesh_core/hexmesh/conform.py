@@ -37,7 +37,8 @@ def conform_bone(bone: pv.PolyData, cartilages: dict[str, pv.UnstructuredGrid], 
     if not nodes:
         return bone, {"applied": False, "vertices_moved": 0, "max_dent_mm": 0.0, "cartilages": {}}
     every = np.concatenate(list(nodes.values()))
-    start = SurfaceDistance(bone).signed(every)
+    distance = SurfaceDistance(bone)  # the surface as it stands: rebuilt after each round's dent
+    start = distance.signed(every)
     normal = np.asarray(bone.compute_normals(cell_normals=False, point_normals=True, auto_orient_normals=True)
                         .point_data["Normals"], float)
     origin = np.array(bone.points, float)
@@ -50,12 +51,13 @@ def conform_bone(bone: pv.PolyData, cartilages: dict[str, pv.UnstructuredGrid], 
         if not len(deep):
             break
         # the triangle over each deep node moves down past it: all three corners by its depth
-        cell = SurfaceDistance(surface).closest(every[deep])[1]
+        cell = distance.closest(every[deep])[1]
         extra = np.zeros(len(origin))
         np.maximum.at(extra, faces[cell].ravel(), np.repeat(-sd[deep] + clearance_mm, 3))
         dent = np.minimum(dent + extra, max_dent_mm)
         surface.points = origin - normal * dent[:, None]
-        sd = SurfaceDistance(surface).signed(every)
+        distance = SurfaceDistance(surface)
+        sd = distance.signed(every)
     moved = dent > 0
     facts: dict = {"applied": False, "vertices_moved": int(moved.sum()), "max_dent_mm": round(float(dent.max(initial=0)), 3)}
     if moved.any() and crossing_edges(surface) > crossing_edges(bone):
