@@ -221,3 +221,23 @@ def test_unique_rows_is_numpys_unique_over_rows():
         got = unique_rows(a, return_inverse=True, return_counts=True)
         assert all(np.array_equal(w.ravel(), g.ravel()) for w, g in zip(want, got))
         assert np.array_equal(unique_rows(a), want[0])
+
+
+def test_the_cartilage_surface_is_decimated_by_half_staying_on_the_smoothed_surface():
+    """The surface the mesher builds on is the smoothed isosurface with half its triangles removed (quadric
+    decimation): the same topology (the sample's femoral cartilage has holes), the same volume, every vertex
+    within hundredths of a millimetre of the surface before decimation (measured: max 0.028 mm)."""
+    from kneemesh_core.surfaces.distance import distance_to_surface
+    from kneemesh_core.surfaces.isosurface import mask_surface
+
+    knee = load_knee(real(SAMPLE))
+    for tissue in ("femoral_cartilage", "patellar_cartilage"):
+        mask = clean_mask(knee.labels, LABEL[tissue], HexOptions.closing_voxels, tissue)
+        full = mask_surface(mask, decimation=0.0, pass_band=HexOptions.pass_band)
+        half = cartilage_surface(mask, HexOptions.pass_band)
+        assert half.n_cells == pytest.approx(full.n_cells / 2, rel=0.01) and half.is_manifold
+        euler = [m.n_points - m.extract_all_edges().n_cells + m.n_cells for m in (full, half)]
+        assert euler[0] == euler[1], (tissue, euler)
+        assert half.volume == pytest.approx(full.volume, rel=1e-4)
+        d = distance_to_surface(np.asarray(half.points), full)
+        assert np.percentile(d, 99) < 0.02 and d.max() < 0.05, (tissue, d.max())
