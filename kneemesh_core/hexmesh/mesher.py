@@ -26,8 +26,9 @@ from kneemesh_core.hexmesh.footprint import Footprint, find_footprint
 from kneemesh_core.hexmesh.quadmesh import quad_mesh
 from kneemesh_core.hexmesh.quality import boundary_crossings, crossing_nodes, hex_quality, passes_gate, summary, to_grid, usable
 from kneemesh_core.hexmesh.rays import height_field
-from kneemesh_core.hexmesh.targets import (BLEND_FRAC_GOOD, BLEND_MIN_SCALED_JACOBIAN, EDGE_RATIO_AIM, FUSED_TOL_MM,
-                                           ELEMENT_SIZE_TOL, MAX_ATTEMPT_VOLUME_ERROR, MAX_EDGE_RATIO, MAX_FLOOR_EXCESS, MIN_SCALED_JACOBIAN)
+from kneemesh_core.hexmesh.targets import (BLEND_FRAC_GOOD, BLEND_MIN_SCALED_JACOBIAN, EDGE_RATIO_AIM, ELEMENT_SIZE_TOL,
+                                           FUSED_TOL_MM, MAX_ATTEMPT_VOLUME_ERROR, MAX_EDGE_RATIO, MAX_FLOOR_EXCESS,
+                                           MIN_SCALED_JACOBIAN)
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.surfaces.masks import CleanMask, clean_mask, label_box
 from kneemesh_core.surfaces.distance import signed_distance
@@ -318,17 +319,16 @@ class _Chain:
 
     def attempt(self, name: str, o: HexOptions, h: float) -> bool:
         """One attempt; whether it ends the chain (within the gate and faithful)."""
+        self.last = None
         try:
             a = _attempt(name, self.labels, self.tissue, o, h, self.cache)
         except KneeMeshError:
             raise
         except Exception as exc:  # a geometric failure: record it and fall back
             self.tried.append(f"{name} ({type(exc).__name__}: {exc})")
-            self.last = None
             return False
         if abs(a.fidelity["volume_error"]) > MAX_ATTEMPT_VOLUME_ERROR:
             self.tried.append(f"{name} (volume off by {a.fidelity['volume_error']:.0%})")
-            self.last = None
             return False
         self.last = a
         if self.best is None or a.score() > self.best.score():
