@@ -157,6 +157,7 @@ def test_rim_columns_short_of_the_gate_are_left_out_not_the_rim(phantoms, monkey
     columns = len(untrimmed.mesh.hexes) // 4
     lost = columns - len(whole.mesh.hexes) // 4
     assert whole.within_gate and whole.faithful and 1 <= lost <= np.unique(np.flatnonzero(short) % columns).size
+    assert whole.summary["rim_columns_left_out"] == lost and untrimmed.summary["rim_columns_left_out"] == 0
     assert whole.fidelity["coverage"] > untrimmed.fidelity["coverage"] - 0.005  # a few columns of a rim
     monkeypatch.undo()
     f = mesh_cartilage(labels, "femoral_cartilage").facts
