@@ -270,6 +270,16 @@ def test_a_hollow_or_unblended_cartilage_is_review_with_its_reasons_never_ok():
     assert said == ["before its edge blend, the mesh covers 93.5% of the cartilage (target 97%)",
                        "before its edge blend, the mesh's articular surface lies 0.2 mm (median; target 0.15 mm) from the "
                        "cartilage's"]
+    # a blend that kept its quality but left a node in the bone as it stood then (phantom 7039 left FC: 0.069 mm):
+    # the conform step lets the bone give way, and the bone that ships is what the verdict judges
+    left_in = {"passed": False, "applied": True, "bone_penetration_mm": 0.0691,
+               "reason": "nodes up to 0.0691 mm inside the bone remain (unblended: 0.1409 mm)"}
+    freed = {"penetration_mm": 0.0691, "penetration_conformed_mm": 0.0221, "fused_fraction_conformed": 0.99}
+    assert tissue_verdict(False, {**good, "blend": left_in, "bone_conform": freed}) == ("ok", [])
+    stuck = {**freed, "penetration_conformed_mm": 0.0691}
+    assert tissue_verdict(False, {**good, "blend": left_in, "bone_conform": stuck}) == (
+        "review", [f"lies 0.0691 mm inside its bone after the bone gave way (target {T.FUSED_TOL_MM} mm)"])
+    assert tissue_verdict(False, {**good, "blend": left_in}) == ("review", [f"edge blend: {left_in['reason']}"])
     report = {"tissues": {"femoral_cartilage": {**hollow, "status": status, "reasons": reasons},
                           "tibia": {"status": "ok"}, "patella": {"status": "failed", "reason": "no patella"}}}
     verdict = knee_verdict(report)

@@ -82,7 +82,10 @@ def cartilage_reasons(e: dict) -> list[str]:
         out.append(f"{whose}volume {swept['volume_error']:+.1%} off the label's (target within {VOLUME_TOL:.0%})")
     if deviation := _missed_deviation(swept["surface_deviation_mm"], checks):
         out.append(f"{whose}articular surface lies {deviation} from the cartilage's")
-    if blend is not None and not blend.get("passed"):
+    conform = e.get("bone_conform")
+    # a blend applied and not passed kept its quality and left a node deeper than FUSED_TOL_MM in the bone as it
+    # stood then; where the conform step let that bone give way, the bone that ships is judged (below)
+    if blend is not None and not blend.get("passed") and not (blend.get("applied") and conform):
         out.append(f"edge blend: {blend.get('reason', 'missed its targets')}")
     rim = (blend or {}).get("beyond_rim")
     if rim is not None and blend.get("applied") and not rim["passed"]:
@@ -95,7 +98,6 @@ def cartilage_reasons(e: dict) -> list[str]:
     if e.get("chain_stopped_after_s") is not None:
         out.append(f"its fallbacks stopped at their time budget ({e['chain_stopped_after_s']} s): the best usable of "
                    f"{len(e.get('attempts', []))} attempts ships")
-    conform = e.get("bone_conform")
     if conform and conform.get("penetration_conformed_mm", 0) > FUSED_TOL_MM:
         out.append(f"lies {conform['penetration_conformed_mm']} mm inside its bone after the bone gave way "
                    f"(target {FUSED_TOL_MM} mm)")
