@@ -300,11 +300,11 @@ def _attempt(name: str, labels: sitk.Image, tissue: str, opts: HexOptions, h: fl
     if drop.any():
         hm = keep_columns(hm, qm.quads, ~drop)
         q = hex_quality(hm.points, hm.hexes)
-    columns = len(hm.hexes)
+    elements = len(hm.hexes)
     hm, q = _trim_short_rim(hm, q)
     s = summary(q, hm.ring)
     s["self_intersections"] = boundary_crossings(hm.points, hm.hexes)
-    s["rim_columns_left_out"] = (columns - len(hm.hexes)) // opts.layers
+    s["rim_columns_left_out"] = (elements - len(hm.hexes)) // opts.layers
     finer = np.unique(qm.piece[qm.quads[~drop, 0]])
     return Attempt(name, hm, q, s, fidelity(hm, surface, cm.label_ml), domain, cm, surface, fp, int((finer > 0).sum()))
 
