@@ -282,10 +282,8 @@ def _attempt(name: str, labels: sitk.Image, tissue: str, opts: HexOptions, h: fl
     # lean into each other over a curved bone), a few rounds over; a piece still crossing after that
     # is left out whole.  (Left out whole at once, a long thin horn that crossed its plate where the two
     # meet cost phantom 31022 right severity 3 MTC 14 % of its cartilage.)
-    short = (q["scaled_jacobian"] < MIN_SCALED_JACOBIAN) | (q["max_edge_ratio"] > MAX_EDGE_RATIO)
     column = np.arange(len(hm.hexes)) % len(qm.quads)
-    drop = np.zeros(len(qm.quads), bool)
-    np.logical_or.at(drop, column, short)
+    drop = _columns_short_of_gate(q, len(qm.quads))
     quad_piece = qm.piece[qm.quads[:, 0]]
     drop &= quad_piece > 0
     for round_ in range(PIECE_CROSSING_ROUNDS + 1 if (quad_piece > 0).any() else 0):
@@ -309,6 +307,16 @@ def _attempt(name: str, labels: sitk.Image, tissue: str, opts: HexOptions, h: fl
     return Attempt(name, hm, q, s, fidelity(hm, surface, cm.label_ml), domain, cm, surface, fp, int((finer > 0).sum()))
 
 
+def _columns_short_of_gate(q: dict, n_quads: int) -> np.ndarray:
+    """(n_quads,) bool: the columns that hold an element short of the gate (scaled Jacobian or edge ratio), from
+    the per-element quality ``q`` of a mesh stacked layer by layer (element k stands on bone-side quad
+    k % n_quads)."""
+    short = (q["scaled_jacobian"] < MIN_SCALED_JACOBIAN) | (q["max_edge_ratio"] > MAX_EDGE_RATIO)
+    out = np.zeros(n_quads, bool)
+    np.logical_or.at(out, np.arange(len(short)) % n_quads, short)
+    return out
+
+
 def _trim_short_rim(hm: HexMesh, q: dict) -> tuple[HexMesh, dict]:
     """``hm`` and its quality ``q`` without the columns of its outermost ring that hold an element short of
     the gate, a ring at a time, at most :data:`RIM_TRIM_ROUNDS` rings deep.
@@ -323,14 +331,11 @@ def _trim_short_rim(hm: HexMesh, q: dict) -> tuple[HexMesh, dict]:
     would go, nothing goes: the rim as a whole is too thin or too steep for the elements, which is for the
     fallbacks to answer (a thinner rim trimmed, fewer layers), not for a rim with a tenth of it missing."""
     untrimmed, total = (hm, q), 0
-    allowed = RIM_TRIM_MAX_FRACTION * int((hm.ring[:int((hm.layer == 0).sum())] == 0).sum())
+    allowed = RIM_TRIM_MAX_FRACTION * int((hm.ring[hm.layer == 0] == 0).sum())
     for _ in range(RIM_TRIM_ROUNDS):
-        short = (q["scaled_jacobian"] < MIN_SCALED_JACOBIAN) | (q["max_edge_ratio"] > MAX_EDGE_RATIO)
-        n_quads = int((hm.layer == 0).sum())  # the columns: element k stands on bone-side quad k % n_quads
-        cut = np.zeros(n_quads, bool)
-        np.logical_or.at(cut, np.arange(len(hm.hexes)) % n_quads, short)
-        cut &= hm.ring[:n_quads] == 0
-        if not cut.any() or cut.all():
+        n_quads = int((hm.layer == 0).sum())
+        cut = _columns_short_of_gate(q, n_quads) & (hm.ring[:n_quads] == 0)
+        if not cut.any():
             break
         total += int(cut.sum())
         if total > allowed:
