@@ -8,13 +8,14 @@ import dataclasses
 import numpy as np
 import pyvista as pv
 import SimpleITK as sitk
+from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.surfaces.bones import bone_mesh
 from kneemesh_core.surfaces.isosurface import mask_surface
-from kneemesh_core.surfaces.masks import CleanMask, clean_mask
+from kneemesh_core.surfaces.masks import CleanMask, clean_mask, label_box
 from kneemesh_core.surfaces.metrics import edges_mm, surface_distance, topology, unique_edges
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, LABEL
 
@@ -56,8 +57,7 @@ def reconstruct_bone(labels: sitk.Image, bone: str, opts: SurfaceOptions) -> tup
     cm = clean_mask(labels, LABEL[bone], opts.bone_closing_voxels, bone, fill_holes=True)
     smooth = mask_surface(cm, decimation=0.0, smoothing_iterations=opts.bone_smoothing_iterations,
                           pass_band=opts.bone_pass_band)
-    cartilage = voxel_to_lps(labels, np.argwhere(np.isin(sitk.GetArrayViewFromImage(labels), [
-        LABEL[t] for t in CARTILAGES if BONE_OF[t] == bone]))[:, ::-1])
+    cartilage = _boundary_voxels(labels, [LABEL[t] for t in CARTILAGES if BONE_OF[t] == bone])
     mesh = bone_mesh(smooth, opts.bone_edge_mm, fine_edge_mm=opts.articular_edge_mm, fine_near=cartilage,
                      fine_band_mm=opts.articular_band_mm)
     edges = unique_edges(mesh)
@@ -73,6 +73,21 @@ def reconstruct_bone(labels: sitk.Image, bone: str, opts: SurfaceOptions) -> tup
     facts["surface_distance_mm"] = {k: round(v, 4) for k, v in sd.items()}
     facts.update(n_points=int(mesh.n_points), n_cells=int(mesh.n_cells), volume_ml=round(float(abs(mesh.volume)) / 1000, 4))
     return mesh, facts
+
+
+def _boundary_voxels(labels: sitk.Image, values: list[int]) -> np.ndarray:
+    """LPS mm (N, 3) of the voxels labelled one of ``values`` that have a face neighbour labelled
+    otherwise.  The nearest labelled voxel to a point is one of them unless the point lies within half a
+    voxel of an inner one, so distances to them are the distances to every labelled voxel beyond that:
+    the shell's grading and the edges' bands read the same from a third of the points (a femur's
+    cartilage, 0.35 s less to query)."""
+    mask = np.isin(sitk.GetArrayViewFromImage(labels), values)
+    box = label_box(mask, margin=1)
+    if box is None:
+        return np.zeros((0, 3))
+    inner = mask[box]
+    edge = np.argwhere(inner & ~ndi.binary_erosion(inner)) + [b.start for b in box]
+    return voxel_to_lps(labels, edge[:, ::-1])
 
 
 def _stats(e: np.ndarray) -> dict:
