@@ -8,8 +8,8 @@ path (reorientation, batching, post-processing, plate split) and compared with i
 ASSD and HD95 per tissue, a table per style.  Styles: ``dess`` is the training's own DESS-like
 synthesis (one contrast draw per volume, no geometric augmentation); the others are the fixed
 contrasts of :mod:`kneemesh_core.segmentation.styles` (T1, fat-suppressed T2, proton density,
-plain DESS), made
-in 3-D by code that training never calls.  Speed: wall time and peak memory per volume on this
+plain DESS, and the plainest renderings: one grey per tissue, bones dark or bright, with and without a
+fluid film), made in 3-D by code that training never calls.  Speed: wall time and peak memory per volume on this
 machine.
 Real DESS: the pyKNEEr qDESS series in ../shared is segmented and overlay PNGs of a few
 slices are written to --out, with the tissue volumes printed.
@@ -42,7 +42,7 @@ def main() -> None:
     from kneemesh_core.segmentation.infer import DEFAULT_MODEL, SegmentationModel, segment
     from kneemesh_core.segmentation.plausibility import check as plausibility_check
     from kneemesh_core.segmentation.plausibility import figures as plausibility_figures
-    from kneemesh_core.segmentation.styles import STYLES, style_image
+    from kneemesh_core.segmentation.styles import PLAIN, STYLES, style_image
     from kneemesh_core.tissues import TISSUES
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -50,7 +50,7 @@ def main() -> None:
     ap.add_argument("--maps", nargs="*", help="label maps to test on (default: the model run's test split)")
     ap.add_argument("--out", type=Path, default=Path("seg-bench"))
     ap.add_argument("--threads", type=int, default=0)
-    ap.add_argument("--styles", nargs="+", default=["dess", *STYLES], choices=["dess", *STYLES],
+    ap.add_argument("--styles", nargs="+", default=["dess", *STYLES, *PLAIN], choices=["dess", *STYLES, *PLAIN],
                     help="image styles to test under (default: all)")
     args = ap.parse_args()
     net = SegmentationModel.load(args.model, args.threads)

@@ -249,6 +249,27 @@ def test_evaluation_styles_have_their_contrast_on_the_label_grid():
     assert mean["plain_dess"]["cartilage"] > 2.0 * mean["plain_dess"]["marrow"]
 
 
+def test_plain_styles_give_each_tissue_one_grey_and_no_cortex():
+    """The plainest renderings, on the label map's grid: a bone's rim as bright as its inside (no dark
+    cortex, which plain DESS has), and only ``plain_rim`` with a film of fluid brighter than the cartilage
+    it lines."""
+    from kneemesh_core.knee import load_knee
+    from kneemesh_core.segmentation.styles import style_image
+
+    labels = load_knee(real(OAI / "OAI_AKOA_9014797_00m.nii.gz")).labels
+    lab = sitk.GetArrayFromImage(labels)
+    femur = lab == LABEL["femur"]
+    rim, inner = femur & ~ndi.binary_erosion(femur), ndi.binary_erosion(femur, iterations=4)
+    film = ndi.binary_dilation(lab == LABEL["femoral_cartilage"]) & (lab == 0)
+    for style in ("plain", "plain_rim", "plain_dess"):
+        img = style_image(labels, style, seed=0)
+        for get in ("GetSize", "GetSpacing", "GetOrigin", "GetDirection"):
+            assert getattr(img, get)() == getattr(labels, get)()
+        arr = sitk.GetArrayFromImage(img)
+        assert (arr[rim].mean() > 0.9 * arr[inner].mean()) == (style != "plain_dess"), style
+        assert (arr[film].mean() > arr[lab == LABEL["femoral_cartilage"]].mean()) == (style != "plain"), style
+
+
 def test_short_training_run(tmp_path):
     """A few steps on phantom label maps: split by subject, ONNX written, agreement checked."""
     from kneemesh_core.io import write_image
