@@ -270,6 +270,21 @@ def test_plain_styles_give_each_tissue_one_grey_and_no_cortex():
         assert (arr[film].mean() > arr[lab == LABEL["femoral_cartilage"]].mean()) == (style != "plain"), style
 
 
+def test_early_stopping_waits_for_the_learning_rate_to_fall():
+    """No better validation Dice for ``patience`` epochs stops a run only where all of them ran in the schedule's
+    last 30 %: the run of 2026-12-07 stopped at epoch 70 of about 105 (its best at 55, the rate a third of its
+    peak) and came out worse than an annealed run."""
+    from kneemesh_core.segmentation.train import EARLY_STOP_FROM, stops_early
+
+    ends = [(e + 1) / 105 for e in range(70)]  # a clock-driven run's epochs, evenly paced
+    assert ends[54] < EARLY_STOP_FROM
+    assert not stops_early(ends, best_epoch=55, patience=15)  # that run goes on
+    late = [(e + 1) / 105 for e in range(95)]
+    assert stops_early(late, best_epoch=80, patience=15)  # 15 epochs in the tail, no better Dice
+    assert not stops_early(late, best_epoch=81, patience=15)  # one fewer
+    assert not stops_early(late[:60], best_epoch=1, patience=15)  # early on, however long without
+
+
 def test_short_training_run(tmp_path):
     """A few steps on phantom label maps: split by subject, ONNX written, agreement checked."""
     from kneemesh_core.io import write_image

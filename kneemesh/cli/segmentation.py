@@ -74,7 +74,7 @@ def _train_flags() -> dict:
         "steps_per_epoch": "Batches per epoch.", "crop": "Training crop size, pixels (a multiple of 32).",
         "lr": "Peak learning rate (one-cycle schedule).", "widths": "Channels of the four levels, comma-separated.",
         "head": "Channels of the full-resolution head.",
-        "patience": "Stop after this many epochs without a better validation Dice.",
+        "patience": "Stop after this many epochs without a better validation Dice, all in the schedule's last 30 %.",
         "max_minutes": "Time budget in minutes: the learning-rate schedule runs on the clock and ends with it (0: none)."},
         names={"steps_per_epoch": "--steps"})
 

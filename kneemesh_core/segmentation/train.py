@@ -94,6 +94,21 @@ def one_cycle(frac: float, peak: float) -> float:
     return peak * (0.01 + 0.99 * 0.5 * (1 + np.cos(np.pi * t)))
 
 
+#: Early stopping looks only at the epochs past this fraction of the schedule, where the learning rate has
+#: fallen under a quarter of its peak: before, the validation Dice swings with the rate (a 90-min run, 2026-12-07,
+#: stopped at epoch 70 on 15 epochs without a better Dice, its rate still a third of its peak, and scored 0.839
+#: where an annealed run scores 0.854).
+EARLY_STOP_FROM = 0.7
+
+
+def stops_early(ends: list[float], best_epoch: int, patience: int) -> bool:
+    """Whether a run stops after its latest epoch: ``ends`` holds how far through the schedule (0..1) each epoch
+    so far ended, ``best_epoch`` (1-based) gave the best validation Dice; it stops when the last ``patience``
+    epochs brought no better one and all of them ran past :data:`EARLY_STOP_FROM`."""
+    done = len(ends)
+    return done - best_epoch >= patience and ends[done - patience - 1] >= EARLY_STOP_FROM
+
+
 def _loss(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Cross-entropy plus soft Dice over the foreground classes (thin cartilage is a small share of pixels)."""
     ce = F.cross_entropy(logits, target)
@@ -143,6 +158,7 @@ def train(data: list[Path], out: Path, opts: TrainOptions = TrainOptions(), phan
     history = []
     t0 = time.perf_counter()
     step = 0
+    ends: list[float] = []  # how far through the schedule each epoch ended
     for epoch in range(opts.epochs):
         model.train()
         losses = []
@@ -163,10 +179,11 @@ def train(data: list[Path], out: Path, opts: TrainOptions = TrainOptions(), phan
             "minutes": round((time.perf_counter() - t0) / 60, 2)})
         log(f"epoch {epoch + 1}/{opts.epochs}: loss {np.mean(losses):.4f}, validation Dice "
             + " ".join(f"{n[:6]} {d:.3f}" for n, d in zip(NET_CLASSES[1:], dice)) + f" (mean {score:.4f})")
+        ends.append(progress(step))
         if score > best["score"]:
             best = {"score": score, "epoch": epoch + 1, "state": {k: v.clone() for k, v in model.state_dict().items()}}
-        elif epoch + 1 - best["epoch"] >= opts.patience:
-            log(f"no improvement for {opts.patience} epochs: stopping")
+        elif stops_early(ends, best["epoch"], opts.patience):
+            log(f"no improvement for {opts.patience} epochs with the learning rate down: stopping")
             break
         if progress(step) >= 1.0:
             if opts.max_minutes:
