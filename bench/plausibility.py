@@ -61,7 +61,7 @@ def main() -> None:
     keys = [("volumes_ml", t) for t in next(iter(rows.values()))["volumes_ml"]]
     keys += [("largest_component", b) for b in ("femur", "tibia", "patella")]
     keys += [("on_bone", c) for c in ("femoral_cartilage", "medial_tibial_cartilage", "lateral_tibial_cartilage", "patellar_cartilage")]
-    keys += [("patella_anterior_mm", None)]
+    keys += [("patella_anterior_mm", None), ("patellar_cartilage_facing_mm", None)]
     removed = list(next(iter(rows.values()))["postprocess_removed"])
     keys += [("postprocess_removed", c) for c in removed]
     for group, name in keys:

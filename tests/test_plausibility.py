@@ -43,3 +43,16 @@ def test_a_real_knee_is_plausible_and_broken_ones_are_review_with_reasons():
     swapped[a == LABEL["femur"]], swapped[a == LABEL["tibia"]] = LABEL["tibia"], LABEL["femur"]
     status, reasons = check(figures(_with(labels, swapped)))
     assert status == "review" and any(r.startswith("femoral cartilage: only") for r in reasons), reasons
+
+    # the patella's front read as patellar cartilage, its true cartilage as bone (#51's plain rendering: patella
+    # voxels and tissue in front called patellar cartilage): the cartilage faces away from the trochlea
+    fc = np.argwhere(a == LABEL["femoral_cartilage"]).mean(0)
+    patella = np.argwhere(a == LABEL["patella"])
+    away = patella[np.linalg.norm(patella - fc, axis=1) > np.percentile(np.linalg.norm(patella - fc, axis=1), 85)]
+    front = a.copy()
+    front[a == LABEL["patellar_cartilage"]] = LABEL["patella"]
+    front[tuple(away.T)] = LABEL["patellar_cartilage"]
+    f = figures(_with(labels, front))
+    status, reasons = check(f)
+    assert f["patellar_cartilage_facing_mm"] < 0 < figures(labels)["patellar_cartilage_facing_mm"]
+    assert status == "review" and any(r.startswith("patellar cartilage: its centre") for r in reasons), reasons

@@ -10,7 +10,10 @@ passes with room to spare:
 * each bone one piece (its largest component at least :data:`MIN_LARGEST_COMPONENT` of it);
 * each cartilage on its bone (at least :data:`MIN_ON_BONE` of its voxels within
   :data:`ON_BONE_MM` of the bone);
-* the patella in front of the femoral cartilage (centroids, within :data:`PATELLA_ANTERIOR_MM`).
+* the patella in front of the femoral cartilage (centroids, within :data:`PATELLA_ANTERIOR_MM`);
+* the patellar cartilage on the patella's femoral side, facing the trochlea: its centroid nearer the
+  femoral cartilage's than the patella's is, by at least :data:`MIN_PATELLAR_CARTILAGE_FACING_MM`
+  (patella bone or tissue in front of it read as patellar cartilage pulls it away).
 
 Bones swapped or misplaced show as cartilage off its bone.  (Which bone lies higher is not
 checked: label maps cropped to the joint, and frames that are not LPS-superior, make it
@@ -44,6 +47,9 @@ MIN_ON_BONE = 0.5
 #: Patella centroid in front of the femoral cartilage's along the anterior axis (LPS -y), mm (real
 #: maps: 9-55).
 PATELLA_ANTERIOR_MM = (4.0, 80.0)
+#: The patellar cartilage's centroid nearer the femoral cartilage's than the patella's centroid is, by at least
+#: this, mm (real maps: 3.1-7.8, median 5.4; half the smallest).
+MIN_PATELLAR_CARTILAGE_FACING_MM = 1.5
 
 
 def figures(labels: sitk.Image) -> dict:
@@ -79,6 +85,10 @@ def figures(labels: sitk.Image) -> dict:
     c = out["centroids_mm"]
     if "patella" in c and "femoral_cartilage" in c:
         out["patella_anterior_mm"] = round(c["femoral_cartilage"][1] - c["patella"][1], 2)
+    if {"patella", "patellar_cartilage", "femoral_cartilage"} <= set(c):
+        fc = np.array(c["femoral_cartilage"])
+        out["patellar_cartilage_facing_mm"] = round(float(np.linalg.norm(np.array(c["patella"]) - fc)
+                                                          - np.linalg.norm(np.array(c["patellar_cartilage"]) - fc)), 2)
     return out
 
 
@@ -101,4 +111,9 @@ def check(f: dict) -> tuple[str, list[str]]:
     if "patella_anterior_mm" in f and not lo <= f["patella_anterior_mm"] <= hi:
         reasons.append(f"the patella's centre in front of the femoral cartilage's: {f['patella_anterior_mm']:.0f} mm, "
                        f"outside the {lo:g}-{hi:g} mm of real knees")
+    facing = f.get("patellar_cartilage_facing_mm")
+    if facing is not None and facing < MIN_PATELLAR_CARTILAGE_FACING_MM:
+        reasons.append(f"patellar cartilage: its centre lies {facing:.1f} mm nearer the femoral cartilage's than the "
+                       f"patella's, under the {MIN_PATELLAR_CARTILAGE_FACING_MM:g} mm of real knees (a patellar cartilage "
+                       "covers the patella's femoral side, facing the trochlea)")
     return ("review" if reasons else "ok"), reasons
