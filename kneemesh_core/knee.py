@@ -19,7 +19,7 @@ from kneemesh_core import side as side_mod
 from kneemesh_core.anatomy.frames import coarse_axes
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.io import Volume, read_label_map, voxel_to_lps, voxel_volume_ml
-from kneemesh_core.surfaces.masks import label_box
+from kneemesh_core.surfaces.masks import boundary_voxels, label_box
 from kneemesh_core.tissues import (
     LABEL,
     MERGED_TIBIAL,
@@ -107,7 +107,7 @@ SHAPE_POINTS = 1500
 def _surface_points(image: sitk.Image, mask: np.ndarray, box: tuple[slice, ...], n: int = SHAPE_POINTS) -> np.ndarray:
     """LPS mm (<= n, 3) of the boundary voxels of a (z, y, x) mask that lies within ``box``, evenly
     subsampled."""
-    edge = np.argwhere(mask & ~ndi.binary_erosion(mask)) + [s.start for s in box]
+    edge = boundary_voxels(mask) + [s.start for s in box]
     return voxel_to_lps(image, edge[:: max(1, len(edge) // n), ::-1])
 
 

@@ -103,3 +103,13 @@ def label_box(mask: np.ndarray, margin: int = 0) -> tuple[slice, ...] | None:
             return None
         box.append(slice(max(int(hit[0]) - margin, 0), min(int(hit[-1]) + margin + 1, mask.shape[axis])))
     return tuple(box)
+
+
+def boundary_voxels(mask: np.ndarray) -> np.ndarray:
+    """(N, 3) int (z, y, x) indices, in C order, of the voxels of a boolean mask with a face neighbour outside
+    it (the array's edge counts as outside), found within the mask's box."""
+    box = label_box(mask)
+    if box is None:
+        return np.zeros((0, 3), np.intp)
+    inner = mask[box]
+    return np.argwhere(inner & ~ndi.binary_erosion(inner)) + [b.start for b in box]

@@ -8,14 +8,13 @@ import dataclasses
 import numpy as np
 import pyvista as pv
 import SimpleITK as sitk
-from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from kneemesh_core.errors import KneeMeshError
 from kneemesh_core.io import voxel_to_lps
 from kneemesh_core.surfaces.bones import bone_mesh
 from kneemesh_core.surfaces.isosurface import mask_surface
-from kneemesh_core.surfaces.masks import CleanMask, clean_mask, label_box
+from kneemesh_core.surfaces.masks import CleanMask, boundary_voxels, clean_mask
 from kneemesh_core.surfaces.metrics import edges_mm, surface_distance, topology, unique_edges
 from kneemesh_core.tissues import BONE_OF, BONES, CARTILAGES, LABEL
 
@@ -81,13 +80,8 @@ def _boundary_voxels(labels: sitk.Image, values: list[int]) -> np.ndarray:
     voxel of an inner one, so distances to them are the distances to every labelled voxel beyond that:
     the shell's grading and the edges' bands read the same from a third of the points (a femur's
     cartilage, 0.35 s less to query)."""
-    mask = np.isin(sitk.GetArrayViewFromImage(labels), values)
-    box = label_box(mask, margin=1)
-    if box is None:
-        return np.zeros((0, 3))
-    inner = mask[box]
-    edge = np.argwhere(inner & ~ndi.binary_erosion(inner)) + [b.start for b in box]
-    return voxel_to_lps(labels, edge[:, ::-1])
+    edge = boundary_voxels(np.isin(sitk.GetArrayViewFromImage(labels), values))
+    return voxel_to_lps(labels, edge[:, ::-1]) if len(edge) else np.zeros((0, 3))
 
 
 def _stats(e: np.ndarray) -> dict:
