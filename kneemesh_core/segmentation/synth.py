@@ -53,6 +53,11 @@ def _smooth_noise(shape, sigma: float, rng: np.random.Generator) -> np.ndarray:
     return n / max(float(n.std()), 1e-6)
 
 
+def _rim(mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The outer 1-3 pixels (H, W) bool of a bone's mask: its cortex, one draw of thickness."""
+    return mask & ~ndi.binary_erosion(mask, iterations=int(rng.integers(1, 4)))
+
+
 def _depth_below_skin(labels: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Depth (H, W) float32 in pixels below a wavy skin line drawn 25-110 px (about 9-40 mm at
     DESS resolution) out from the joint's tissues: negative outside the leg; a crop holding no
@@ -146,7 +151,7 @@ def dess_like(labels: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         if rng.random() < 0.5:  # trabecular texture half the time: marrow may be flat or grainy
             img[m] *= np.clip(1.0 + rng.uniform(0.1, 0.5) * _smooth_noise(shape, rng.uniform(0.6, 2.0), rng)[m], 0.0, None)
         if draw_cortex:
-            img[m & ~ndi.binary_erosion(m, iterations=int(rng.integers(1, 4)))] = cortex
+            img[_rim(m, rng)] = cortex
     for c in CARTILAGES:
         img[labels == c] = base * rng.uniform(0.85, 1.15)
     return img
@@ -185,7 +190,7 @@ def random_contrast(labels: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         m = labels == c
         sub[m] = 1 if shared else c
         if draw_cortex:
-            sub[m & ~ndi.binary_erosion(m, iterations=int(rng.integers(1, 4)))] = 4 if shared else c + 3
+            sub[_rim(m, rng)] = 4 if shared else c + 3
     for c in CARTILAGES:
         sub[labels == c] = 7 if shared else c + 3
     means = rng.uniform(0.0, 1.0, sub.max() + 1).astype(np.float32)
